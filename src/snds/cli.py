@@ -1,0 +1,241 @@
+"""The ``snds`` command line: a thin layer that builds configs and calls the library."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import torch
+
+from snds.data import (
+    Demonstrations,
+    Normalization,
+    Split,
+    load_demonstrations,
+    load_lasa,
+    no_split,
+    split_samples,
+)
+from snds.errors import SNDSError
+from snds.evaluate import evaluate
+from snds.io import load_model, save_model, to_jsonable, write_json
+from snds.policy import PolicyConfig, StablePolicy
+from snds.train import TrainConfig, fit
+
+
+def _data_arguments(parser: argparse.ArgumentParser, *, required: bool) -> None:
+    source = parser.add_mutually_exclusive_group(required=required)
+    source.add_argument("--motion", help="a LASA handwriting motion, e.g. Sine")
+    source.add_argument("--data", type=Path, help="demonstrations: .mat, .csv or .npz")
+    parser.add_argument(
+        "--demos", type=int, default=None, help="train on the first K demonstrations"
+    )
+
+
+def _check_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--rollouts", type=int, default=1000, help="random starts of the stability check"
+    )
+    parser.add_argument(
+        "--samples", type=int, default=100_000, help="states of the decrease-condition check"
+    )
+
+
+def _build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="snds", description="Globally stable neural motion policies from demonstrations."
+    )
+    parser.add_argument("--quiet", action="store_true", help="no progress bars or summaries")
+    commands = parser.add_subparsers(dest="command", required=True)
+
+    train = commands.add_parser("train", help="train a stable policy and evaluate it")
+    _data_arguments(train, required=True)
+    train.add_argument("--seed", type=int, default=0, help="seed of weights and split")
+    train.add_argument("--out", type=Path, default=None, help="model directory")
+    train.add_argument("--plot", action="store_true", help="also write the plots")
+    train.add_argument("--test-fraction", type=float, default=0.2, help="held-out samples")
+    train.add_argument("--steps", type=int, default=TrainConfig.steps, help="optimiser steps")
+    train.add_argument("--window", type=int, default=TrainConfig.window, help="Euler window Nw")
+    train.add_argument(
+        "--velocity-loss", choices=["mse", "srvf"], default=TrainConfig.velocity_shape
+    )
+    train.add_argument(
+        "--decay-rate",
+        type=float,
+        default=PolicyConfig.decay_rate,
+        help="rho in a(x) = rho V(x); 0 is the paper's relaxed mode (dV/dt <= 0 only)",
+    )
+    train.add_argument("--unconstrained", action="store_true", help="behavioural cloning")
+    train.add_argument("--device", default="cpu", help="torch device (cpu, cuda, ...)")
+    _check_arguments(train)
+    train.set_defaults(run=_train)
+
+    evaluate_ = commands.add_parser("evaluate", help="evaluate a trained model")
+    evaluate_.add_argument("model", type=Path, help="model directory")
+    _data_arguments(evaluate_, required=False)
+    evaluate_.add_argument("--seed", type=int, default=0, help="seed of the stability check")
+    _check_arguments(evaluate_)
+    evaluate_.set_defaults(run=_evaluate)
+
+    plot = commands.add_parser("plot", help="plot a trained model")
+    plot.add_argument("model", type=Path, help="model directory")
+    _data_arguments(plot, required=False)
+    plot.add_argument("--out", type=Path, default=None, help="folder of the PNGs")
+    plot.set_defaults(run=_plot)
+    return parser
+
+
+def _load_data(motion: str | None, data: Path | None, demos: int | None) -> Demonstrations:
+    loaded = load_lasa(motion) if motion is not None else load_demonstrations(data)
+    return loaded if demos is None else loaded.first(demos)
+
+
+def _source(args: argparse.Namespace) -> dict:
+    if args.motion is not None:
+        return {"motion": args.motion, "demos": args.demos}
+    return {"file": str(Path(args.data).resolve()), "demos": args.demos}
+
+
+def _train(args: argparse.Namespace) -> int:
+    demos = _load_data(args.motion, args.data, args.demos)
+    out = args.out or Path("runs") / (demos.name or Path(str(args.data)).stem)
+    split = (
+        split_samples(demos, test_fraction=args.test_fraction, seed=args.seed)
+        if args.test_fraction > 0
+        else no_split(demos)
+    )
+    policy_config = PolicyConfig(decay_rate=args.decay_rate, stable=not args.unconstrained)
+    train_config = TrainConfig(
+        steps=args.steps,
+        window=args.window,
+        velocity_shape=args.velocity_loss,
+        seed=args.seed,
+        device=args.device,
+    )
+    policy = StablePolicy(
+        dim=demos.dim,
+        normalization=Normalization.fit(demos),
+        config=policy_config,
+        seed=args.seed,
+    )
+    result = fit(policy, demos, split, train_config, progress=not args.quiet)
+    policy.to("cpu")
+    record = {
+        "data": _source(args),
+        "split": {"test_fraction": args.test_fraction, "seed": args.seed},
+        "train": train_config.to_dict(),
+        "train_result": {k: v for k, v in dataclasses.asdict(result).items() if k != "history"},
+    }
+    save_model(policy, out, extra=record)
+    write_json(out / "loss.json", {"history": result.history})
+    metrics = evaluate(
+        policy, demos, split, seed=args.seed, rollouts=args.rollouts, samples=args.samples
+    )
+    metrics["train_seconds"] = result.seconds
+    write_json(out / "metrics.json", to_jsonable(metrics))
+    if args.plot:
+        _write_plots(policy, demos, out, result.history)
+    if not args.quiet:
+        _summarise(out, metrics)
+    return 0
+
+
+def _split_from(description: dict, demos: Demonstrations) -> Split:
+    split = description.get("split", {})
+    fraction = float(split.get("test_fraction", 0.0))
+    if fraction <= 0:
+        return no_split(demos)
+    return split_samples(demos, test_fraction=fraction, seed=int(split.get("seed", 0)))
+
+
+def _model_and_data(args: argparse.Namespace) -> tuple[StablePolicy, dict, Demonstrations]:
+    policy, description = load_model(args.model)
+    if args.motion is None and args.data is None:
+        source = description.get("data", {})
+        if "motion" in source:
+            demos = _load_data(source["motion"], None, source.get("demos"))
+        elif "file" in source:
+            demos = _load_data(None, Path(source["file"]), source.get("demos"))
+        else:
+            raise SNDSError(f"{args.model}: no data recorded; pass --motion or --data")
+    else:
+        demos = _load_data(args.motion, args.data, args.demos)
+    if demos.dim != policy.dim:
+        raise SNDSError(
+            f"the data has dimension {demos.dim}, the model in {args.model} {policy.dim}"
+        )
+    return policy, description, demos
+
+
+def _evaluate(args: argparse.Namespace) -> int:
+    policy, description, demos = _model_and_data(args)
+    metrics = evaluate(
+        policy,
+        demos,
+        _split_from(description, demos),
+        seed=args.seed,
+        rollouts=args.rollouts,
+        samples=args.samples,
+    )
+    metrics["train_seconds"] = description.get("train_result", {}).get("seconds")
+    write_json(args.model / "metrics.json", to_jsonable(metrics))
+    if not args.quiet:
+        _summarise(args.model, metrics)
+    return 0
+
+
+def _plot(args: argparse.Namespace) -> int:
+    policy, _, demos = _model_and_data(args)
+    history = None
+    loss_file = args.model / "loss.json"
+    if loss_file.is_file():
+        history = json.loads(loss_file.read_text()).get("history")
+    paths = _write_plots(policy, demos, args.out or args.model, history)
+    if not args.quiet:
+        for path in paths:
+            print(path)
+    return 0
+
+
+def _write_plots(
+    policy: StablePolicy, demos: Demonstrations, out: Path, history: list[float] | None
+) -> list[Path]:
+    from snds.plotting import plot_all
+
+    return plot_all(policy.to(torch.float64).eval(), demos, out, history=history)
+
+
+def _summarise(out: Path, metrics: dict) -> None:
+    stability = metrics["stability"]
+    seconds = metrics.get("train_seconds")
+    timing = f"trained in {seconds:.1f} s, " if seconds is not None else ""
+    print(
+        f"{out}: {timing}velocity MSE {metrics['velocity_mse_paper']:.4f} (paper scale), "
+        f"DTW {metrics['dtw_paper']:.4f} (paper scale), "
+        f"converged {stability['converged_fraction']:.3f} of {stability['rollouts']} rollouts, "
+        f"{stability['decrease_violations']} decrease violations in "
+        f"{stability['samples_checked']} samples"
+    )
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Runs the command line; returns the exit code (2 for bad input)."""
+    parser = _build_parser()
+    args = parser.parse_args(argv)
+    run: Callable[[argparse.Namespace], int] = args.run
+    try:
+        return run(args)
+    except SNDSError as error:
+        print(f"snds: error: {error}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("snds: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

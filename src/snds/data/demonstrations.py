@@ -1,0 +1,274 @@
+"""Demonstrations: immutable containers for demonstrated motions and their normalisation."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from snds.errors import DataError
+
+
+def _as_float_array(value: np.ndarray, name: str, ndim: int) -> np.ndarray:
+    array = np.asarray(value, dtype=np.float64)
+    if array.ndim != ndim:
+        raise DataError(f"{name} must have {ndim} dimension(s), got shape {array.shape}")
+    if not np.all(np.isfinite(array)):
+        raise DataError(f"{name} contains NaN or inf values")
+    array = array.copy()
+    array.setflags(write=False)
+    return array
+
+
+@dataclass(frozen=True)
+class Demonstration:
+    """One demonstrated motion, sampled in time.
+
+    Attributes:
+        positions: States along the motion, shape (T, n).
+        velocities: Their time derivatives, shape (T, n).
+        times: Strictly increasing sample times in seconds, shape (T,).
+    """
+
+    positions: np.ndarray
+    velocities: np.ndarray
+    times: np.ndarray
+
+    def __post_init__(self) -> None:
+        positions = _as_float_array(self.positions, "positions", 2)
+        velocities = _as_float_array(self.velocities, "velocities", 2)
+        times = _as_float_array(self.times, "times", 1)
+        if positions.shape[0] < 2:
+            raise DataError(f"a demonstration needs at least 2 samples, got {positions.shape[0]}")
+        if velocities.shape != positions.shape:
+            raise DataError(
+                f"velocities shape {velocities.shape} differs from positions shape "
+                f"{positions.shape}"
+            )
+        if times.shape[0] != positions.shape[0]:
+            raise DataError(f"times has {times.shape[0]} samples, positions {positions.shape[0]}")
+        if np.any(np.diff(times) <= 0):
+            raise DataError("times must be strictly increasing (duplicated or unsorted stamps)")
+        object.__setattr__(self, "positions", positions)
+        object.__setattr__(self, "velocities", velocities)
+        object.__setattr__(self, "times", times)
+
+    @property
+    def dim(self) -> int:
+        """State dimension n."""
+        return self.positions.shape[1]
+
+    @property
+    def duration(self) -> float:
+        """Time from the first to the last sample, in seconds."""
+        return float(self.times[-1] - self.times[0])
+
+    @property
+    def dt(self) -> np.ndarray:
+        """Time steps between consecutive samples, shape (T - 1,)."""
+        return np.diff(self.times)
+
+
+@dataclass(frozen=True)
+class Demonstrations:
+    """A set of demonstrations of one task, all ending at a common target.
+
+    Attributes:
+        demos: The demonstrated motions, each of dimension n.
+        target: The common end point x*, shape (n,).
+        name: A label for plots and reports.
+    """
+
+    demos: tuple[Demonstration, ...]
+    target: np.ndarray
+    name: str = ""
+
+    def __post_init__(self) -> None:
+        demos = tuple(self.demos)
+        if not demos:
+            raise DataError("no demonstrations given")
+        dims = {demo.dim for demo in demos}
+        if len(dims) != 1:
+            raise DataError(f"demonstrations have different dimensions: {sorted(dims)}")
+        target = _as_float_array(self.target, "target", 1)
+        if target.shape[0] != demos[0].dim:
+            raise DataError(f"target has dimension {target.shape[0]}, demonstrations {demos[0].dim}")
+        object.__setattr__(self, "demos", demos)
+        object.__setattr__(self, "target", target)
+
+    def __len__(self) -> int:
+        return len(self.demos)
+
+    def __getitem__(self, index: int) -> Demonstration:
+        return self.demos[index]
+
+    def __iter__(self):
+        return iter(self.demos)
+
+    @property
+    def dim(self) -> int:
+        """State dimension n."""
+        return self.demos[0].dim
+
+    def select(self, indices: list[int] | tuple[int, ...] | range) -> Demonstrations:
+        """The demonstrations at ``indices``, in that order, with the same target."""
+        indices = list(indices)
+        for i in indices:
+            if not 0 <= i < len(self.demos):
+                raise DataError(f"demonstration index {i} out of range 0..{len(self.demos) - 1}")
+        return Demonstrations(tuple(self.demos[i] for i in indices), self.target, self.name)
+
+    def first(self, k: int) -> Demonstrations:
+        """The first ``k`` demonstrations."""
+        if not 1 <= k <= len(self.demos):
+            raise DataError(f"asked for {k} demonstrations, the set has {len(self.demos)}")
+        return self.select(range(k))
+
+    def positions(self) -> np.ndarray:
+        """All positions stacked, shape (sum T, n)."""
+        return np.concatenate([demo.positions for demo in self.demos])
+
+    def velocities(self) -> np.ndarray:
+        """All velocities stacked, shape (sum T, n)."""
+        return np.concatenate([demo.velocities for demo in self.demos])
+
+    def extent(self) -> float:
+        """Largest distance of any demonstrated position from the target (the task's size)."""
+        return float(np.linalg.norm(self.positions() - self.target, axis=-1).max())
+
+    def max_speed(self) -> float:
+        """Largest demonstrated speed."""
+        return float(np.linalg.norm(self.velocities(), axis=-1).max())
+
+    def max_duration(self) -> float:
+        """Duration of the longest demonstration, in seconds."""
+        return max(demo.duration for demo in self.demos)
+
+    def mean_dt(self) -> float:
+        """Mean sampling step over all demonstrations, in seconds."""
+        return float(np.mean(np.concatenate([demo.dt for demo in self.demos])))
+
+
+@dataclass(frozen=True)
+class Normalization:
+    r"""One affine map of space and time shared by all demonstrations of a task.
+
+    Model coordinates are :math:`\tilde x = (x - x^*) / L` and :math:`\tilde t = t / \tau`, so
+    velocities map as :math:`\tilde v = v \tau / L`. One isotropic length scale keeps the shape
+    of the motion (scaling each axis or each demonstration separately would distort it).
+
+    Attributes:
+        center: The target x* in user units, shape (n,).
+        length: Length scale L > 0 (user units).
+        time: Time scale tau > 0 (seconds).
+    """
+
+    center: np.ndarray
+    length: float
+    time: float
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "center", _as_float_array(self.center, "center", 1))
+        if not (np.isfinite(self.length) and self.length > 0):
+            raise DataError(f"normalisation length must be positive and finite, got {self.length}")
+        if not (np.isfinite(self.time) and self.time > 0):
+            raise DataError(f"normalisation time must be positive and finite, got {self.time}")
+
+    @classmethod
+    def fit(cls, demos: Demonstrations) -> Normalization:
+        """Maps the target to 0, the extent to 1, and the fastest demonstrated speed to 1."""
+        length = demos.extent()
+        speed = demos.max_speed()
+        if length <= 0:
+            raise DataError("demonstrations have zero extent (every sample is at the target)")
+        if speed <= 0:
+            raise DataError("demonstrations never move (every velocity is zero)")
+        return cls(center=demos.target, length=length, time=length / speed)
+
+    def positions_to_model(self, x: np.ndarray) -> np.ndarray:
+        """User positions (*, n) to model coordinates (*, n)."""
+        return (np.asarray(x) - self.center) / self.length
+
+    def positions_from_model(self, x: np.ndarray) -> np.ndarray:
+        """Model coordinates (*, n) to user positions (*, n)."""
+        return np.asarray(x) * self.length + self.center
+
+    def velocities_to_model(self, v: np.ndarray) -> np.ndarray:
+        """User velocities (*, n) to model velocities (*, n)."""
+        return np.asarray(v) * (self.time / self.length)
+
+    def velocities_from_model(self, v: np.ndarray) -> np.ndarray:
+        """Model velocities (*, n) to user velocities (*, n)."""
+        return np.asarray(v) * (self.length / self.time)
+
+    def to_dict(self) -> dict:
+        """JSON-ready form."""
+        return {"center": self.center.tolist(), "length": self.length, "time": self.time}
+
+    @classmethod
+    def from_dict(cls, data: dict) -> Normalization:
+        """Inverse of :meth:`to_dict`."""
+        try:
+            return cls(
+                center=np.asarray(data["center"], dtype=np.float64),
+                length=float(data["length"]),
+                time=float(data["time"]),
+            )
+        except (KeyError, TypeError) as error:
+            raise DataError(f"malformed normalisation record: {error}") from error
+
+
+@dataclass(frozen=True)
+class Split:
+    """Which samples of each demonstration are used for training.
+
+    Attributes:
+        train: One boolean mask per demonstration, shape (T_d,); False marks a test sample.
+    """
+
+    train: tuple[np.ndarray, ...] = field(default_factory=tuple)
+
+    def test(self) -> tuple[np.ndarray, ...]:
+        """The complementary masks of the test samples."""
+        return tuple(~mask for mask in self.train)
+
+
+def split_samples(demos: Demonstrations, *, test_fraction: float, seed: int) -> Split:
+    """Random split of samples (the paper's protocol: 0.8 / 0.2 of all samples).
+
+    Arguments:
+        demos: The demonstrations to split.
+        test_fraction: Fraction of the samples of each demonstration held out, in [0, 1).
+        seed: Seed of the random choice.
+    """
+    if not 0.0 <= test_fraction < 1.0:
+        raise DataError(f"test_fraction must be in [0, 1), got {test_fraction}")
+    rng = np.random.default_rng(seed)
+    masks = []
+    for demo in demos:
+        length = demo.positions.shape[0]
+        mask = np.ones(length, dtype=bool)
+        mask[rng.permutation(length)[: int(round(test_fraction * length))]] = False
+        masks.append(mask)
+    return Split(tuple(masks))
+
+
+def split_demos(demos: Demonstrations, *, test_demos: list[int] | tuple[int, ...]) -> Split:
+    """Hold out whole demonstrations: every sample of ``test_demos`` is a test sample."""
+    held_out = set(test_demos)
+    for i in held_out:
+        if not 0 <= i < len(demos):
+            raise DataError(f"test demonstration {i} out of range 0..{len(demos) - 1}")
+    if len(held_out) == len(demos):
+        raise DataError("every demonstration is held out: nothing left to train on")
+    return Split(
+        tuple(
+            np.full(demo.positions.shape[0], i not in held_out, dtype=bool)
+            for i, demo in enumerate(demos)
+        )
+    )
+
+
+def no_split(demos: Demonstrations) -> Split:
+    """Train on every sample."""
+    return Split(tuple(np.ones(demo.positions.shape[0], dtype=bool) for demo in demos))

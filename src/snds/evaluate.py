@@ -1,0 +1,96 @@
+"""Evaluation of a trained policy on its demonstrations: accuracy and stability in one record."""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import torch
+
+from snds.data.demonstrations import Demonstrations, Split
+from snds.metrics import dtw, final_distance, velocity_mse
+from snds.policy import StablePolicy
+from snds.rollout import rollout_numpy
+from snds.stability import check_stability
+
+
+def evaluation_demos(split: Split) -> list[int]:
+    """Demonstrations to roll out for DTW: the held-out ones, or all under a sample split."""
+    held_out = [i for i, mask in enumerate(split.train) if not mask.any()]
+    return held_out or list(range(len(split.train)))
+
+
+def reproduce(policy: StablePolicy, demos: Demonstrations, indices: list[int]) -> list[np.ndarray]:
+    """Euler rollouts from the starts of demonstrations, each with its own mean step and length.
+
+    Returns:
+        One rollout per index, shape (T_d, n).
+    """
+    paths = []
+    for i in indices:
+        demo = demos[i]
+        steps = len(demo.times) - 1
+        path = rollout_numpy(
+            policy, demo.positions[:1], dt=demo.duration / steps, steps=steps
+        )
+        paths.append(path[0])
+    return paths
+
+
+def accuracy(policy: StablePolicy, demos: Demonstrations, split: Split) -> dict[str, float]:
+    """Velocity MSE on the test samples, DTW of reproductions and their final distance.
+
+    Both in user units and in the paper's scale (positions relative to the target divided by
+    the largest distance of a demonstrated position from the target, velocities by the
+    largest demonstrated speed), which makes them comparable with the paper's Fig. 4.
+
+    Arguments:
+        policy: The policy, in float64.
+        demos: All demonstrations of the task.
+        split: The train / test split (test samples for MSE; held-out demos for DTW).
+    """
+    test = split.test()
+    has_test = any(mask.any() for mask in test)
+    masks = test if has_test else split.train
+    positions = np.concatenate([d.positions[m] for d, m in zip(demos, masks)])
+    velocities = np.concatenate([d.velocities[m] for d, m in zip(demos, masks)])
+    predicted = policy.predict(positions)
+    speed, extent = demos.max_speed(), demos.extent()
+    indices = evaluation_demos(split)
+    paths = reproduce(policy, demos, indices)
+    references = [demos[i].positions for i in indices]
+    dtws = [dtw(p, r) for p, r in zip(paths, references)]
+    return {
+        "velocity_mse": velocity_mse(predicted, velocities),
+        "velocity_mse_paper": velocity_mse(predicted / speed, velocities / speed),
+        "velocity_mse_on": "test samples" if has_test else "training samples (no test split)",
+        "dtw": float(np.mean(dtws)),
+        "dtw_paper": float(np.mean(dtws) / extent),
+        "final_distance": float(max(final_distance(p, demos.target) for p in paths)),
+    }
+
+
+def evaluate(
+    policy: StablePolicy,
+    demos: Demonstrations,
+    split: Split,
+    *,
+    seed: int = 0,
+    rollouts: int = 1000,
+    samples: int = 100_000,
+) -> dict:
+    """Accuracy and the stability report, as one JSON-ready record.
+
+    Arguments:
+        policy: The policy (not modified; evaluated in float64).
+        demos: All demonstrations of the task.
+        split: The train / test split.
+        seed: Seed of the stability check's random starts and samples.
+        rollouts: Random starts of the stability check.
+        samples: States of the decrease-condition check.
+    """
+    policy64 = copy.deepcopy(policy).to(torch.float64).eval()
+    record = accuracy(policy64, demos, split)
+    report = check_stability(policy64, demos, rollouts=rollouts, samples=samples, seed=seed)
+    record["stability"] = report.to_dict()
+    return record

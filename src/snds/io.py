@@ -1,0 +1,178 @@
+"""Saving and loading models: safetensors weights plus a JSON description, never pickle.
+
+A model directory holds ``model.safetensors`` (the tensors) and ``model.json`` (format
+version, library version, architecture, normalisation, target, train config and the data it
+was trained on). Loading reads only these two plain formats, so a file we did not write can
+at worst be refused, never execute code.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from safetensors import SafetensorError
+from safetensors.torch import load_file, save_file
+
+from snds.data.demonstrations import Normalization
+from snds.errors import DataError, ModelFileError
+from snds.policy import PolicyConfig, StablePolicy
+
+#: Version of the model directory layout; a newer one is refused, not guessed at.
+FORMAT_VERSION = 1
+WEIGHTS = "model.safetensors"
+DESCRIPTION = "model.json"
+
+
+def atomic_write(path: Path, write: Any) -> None:
+    """Writes a file through a temporary file in the same folder and an atomic rename.
+
+    An interrupted write leaves either the old file or none, never a half-written one.
+
+    Arguments:
+        path: The destination.
+        write: A function that writes to the temporary path it is given.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.close(fd)
+    try:
+        write(Path(tmp))
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def write_json(path: Path, data: dict) -> None:
+    """Writes JSON atomically, with sorted keys and an indent for diffs."""
+
+    def write(tmp: Path) -> None:
+        tmp.write_text(json.dumps(data, indent=2, sort_keys=True, allow_nan=True) + "\n")
+
+    atomic_write(path, write)
+
+
+def save_model(policy: StablePolicy, directory: Path, *, extra: dict | None = None) -> None:
+    """Saves a policy as ``model.safetensors`` + ``model.json`` in ``directory``.
+
+    Arguments:
+        policy: The policy.
+        directory: The model directory (created if needed).
+        extra: More JSON-ready records for ``model.json`` (train config, data source, ...).
+    """
+    from snds import __version__
+
+    directory = Path(directory)
+    tensors = {k: v.detach().cpu().contiguous() for k, v in policy.state_dict().items()}
+    description = {
+        "format_version": FORMAT_VERSION,
+        "library": "snds",
+        "library_version": __version__,
+        "method": "snds" if policy.stable else "bc",
+        "dim": policy.dim,
+        "dtype": str(next(iter(tensors.values())).dtype).removeprefix("torch."),
+        "policy": policy.config.to_dict(),
+        "normalization": policy.normalization.to_dict(),
+        "target": policy.normalization.center.tolist(),
+        **(extra or {}),
+    }
+    atomic_write(directory / WEIGHTS, lambda tmp: save_file(tensors, str(tmp)))
+    write_json(directory / DESCRIPTION, description)
+
+
+def read_description(directory: Path) -> dict:
+    """Reads and validates ``model.json`` of a model directory."""
+    path = Path(directory) / DESCRIPTION
+    if not path.is_file():
+        raise ModelFileError(f"{path}: missing (is {directory} a model directory?)")
+    try:
+        description = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as error:
+        raise ModelFileError(f"{path}: corrupted JSON ({error})") from error
+    if not isinstance(description, dict) or description.get("library") != "snds":
+        raise ModelFileError(f"{path}: not an snds model description")
+    version = description.get("format_version")
+    if not isinstance(version, int):
+        raise ModelFileError(f"{path}: no integer format_version")
+    if version > FORMAT_VERSION:
+        raise ModelFileError(
+            f"{path}: format version {version} is newer than this snds reads "
+            f"({FORMAT_VERSION}); upgrade snds"
+        )
+    for key in ("dim", "policy", "normalization"):
+        if key not in description:
+            raise ModelFileError(f"{path}: missing field {key!r}")
+    return description
+
+
+def load_model(directory: Path) -> tuple[StablePolicy, dict]:
+    """Loads a policy saved by :func:`save_model`.
+
+    Arguments:
+        directory: The model directory.
+
+    Returns:
+        The policy (in eval mode, in the dtype it was saved in) and the ``model.json`` record.
+    """
+    directory = Path(directory)
+    description = read_description(directory)
+    try:
+        config = PolicyConfig(**description["policy"])
+        normalization = Normalization.from_dict(description["normalization"])
+        policy = StablePolicy(
+            dim=int(description["dim"]), normalization=normalization, config=config
+        )
+    except (TypeError, ValueError, DataError) as error:
+        raise ModelFileError(f"{directory / DESCRIPTION}: invalid architecture ({error})") from error
+    weights = directory / WEIGHTS
+    if not weights.is_file():
+        raise ModelFileError(f"{weights}: missing")
+    try:
+        tensors = load_file(str(weights))
+    except (SafetensorError, OSError, ValueError) as error:
+        raise ModelFileError(f"{weights}: corrupted safetensors file ({error})") from error
+    _check_tensors(weights, policy.state_dict(), tensors)
+    dtype = next(iter(tensors.values())).dtype
+    policy.to(dtype)
+    policy.load_state_dict(tensors)
+    return policy.eval(), description
+
+
+def _check_tensors(
+    path: Path, expected: dict[str, torch.Tensor], found: dict[str, torch.Tensor]
+) -> None:
+    missing = sorted(set(expected) - set(found))
+    unexpected = sorted(set(found) - set(expected))
+    if missing or unexpected:
+        raise ModelFileError(
+            f"{path}: tensors do not match the architecture (missing {missing[:3]}, "
+            f"unexpected {unexpected[:3]})"
+        )
+    for name, tensor in found.items():
+        if tuple(tensor.shape) != tuple(expected[name].shape):
+            raise ModelFileError(
+                f"{path}: tensor {name!r} has shape {tuple(tensor.shape)}, the architecture "
+                f"needs {tuple(expected[name].shape)}"
+            )
+        if not tensor.is_floating_point() or not bool(torch.isfinite(tensor).all()):
+            raise ModelFileError(f"{path}: tensor {name!r} is not finite floating point")
+
+
+def to_jsonable(value: Any) -> Any:
+    """Converts NumPy scalars and arrays inside a record to plain JSON types."""
+    if isinstance(value, dict):
+        return {str(k): to_jsonable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [to_jsonable(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    return value

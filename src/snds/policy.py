@@ -1,0 +1,179 @@
+r"""Stable policies: a nominal network projected onto the Lyapunov decrease condition.
+
+The guarantee of the library is :func:`project`. Everything else wires networks together.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from snds.data.demonstrations import Normalization
+from snds.nn import MLP, Lyapunov
+
+
+def _relu(u: Tensor) -> Tensor:
+    return F.relu(u)
+
+
+def _softplus(u: Tensor, sharpness: float = 50.0) -> Tensor:
+    # softplus(k u) / k >= max(u, 0) for every u, so the decrease bound still holds exactly.
+    return F.softplus(u, beta=sharpness)
+
+
+#: Rectifiers r with r(u) >= max(u, 0): ReLU (the paper) or a smooth softplus.
+RECTIFIERS = {"relu": _relu, "softplus": _softplus}
+
+
+def project(f: Tensor, grad_v: Tensor, decay: Tensor, rectifier: str = "relu") -> Tensor:
+    r"""Removes the part of a velocity field that would let V decrease too slowly.
+
+    .. math:: \pi = f - \nabla V \, \frac{r(\nabla V^\top f + a)}{\|\nabla V\|^2}
+
+    With :math:`r(u) \ge \max(u, 0)`, :math:`\nabla V^\top \pi = \nabla V^\top f -
+    r(\nabla V^\top f + a) \le -a` holds exactly wherever :math:`\nabla V \ne 0`; where
+    :math:`f` already decreases V fast enough (and r is ReLU), :math:`\pi = f`. No regulariser
+    is added to the denominator, since one would break the inequality; where
+    :math:`\nabla V = 0` (only at the target, for a strongly convex V) :math:`\pi = f`.
+
+    Arguments:
+        f: Nominal velocities, shape (*, n).
+        grad_v: Gradient of the Lyapunov function at the same states, shape (*, n).
+        decay: Required decrease rate a(x) >= 0, shape (*,).
+        rectifier: A key of :data:`RECTIFIERS`.
+
+    Returns:
+        The projected velocities, shape (*, n).
+    """
+    norm2 = (grad_v * grad_v).sum(-1)
+    excess = RECTIFIERS[rectifier]((grad_v * f).sum(-1) + decay)
+    safe = torch.where(norm2 > 0, norm2, torch.ones_like(norm2))
+    return f - grad_v * (excess / safe).unsqueeze(-1)
+
+
+@dataclass(frozen=True, kw_only=True)
+class PolicyConfig:
+    """Architecture of a policy; saved beside its weights.
+
+    Attributes:
+        hidden: Hidden widths of the nominal MLP f.
+        activation: Activation of f (a key of :data:`snds.nn.ACTIVATIONS`).
+        fourier_features: Random Fourier features of the input of f (0: raw input).
+        fourier_scale: Standard deviation of their frequencies, per unit of model coordinates
+            (the demonstrations span about [-1, 1]).
+        lyapunov_hidden: Hidden widths of the ICNN in V.
+        lyapunov_activation: Convex activation of the ICNN.
+        quadratic: Coefficient d of the quadratic floor of V.
+        decay_rate: rho in a(x) = rho V(x), per unit of model time (0: the paper's relaxed
+            mode, which only gives dV/dt <= 0 and does not rule out spurious equilibria).
+        rectifier: r in the projection ("relu" as in the paper, or "softplus").
+        stable: False gives the unconstrained policy pi = f (behavioural cloning).
+    """
+
+    hidden: tuple[int, ...] = (128, 128)
+    activation: str = "silu"
+    fourier_features: int = 128
+    fourier_scale: float = 5.0
+    lyapunov_hidden: tuple[int, ...] = (32, 32)
+    lyapunov_activation: str = "smooth_leaky"
+    quadratic: float = 0.05
+    decay_rate: float = 0.5
+    rectifier: str = "relu"
+    stable: bool = True
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "hidden", tuple(self.hidden))
+        object.__setattr__(self, "lyapunov_hidden", tuple(self.lyapunov_hidden))
+        if self.decay_rate < 0:
+            raise ValueError(f"decay_rate must be >= 0, got {self.decay_rate}")
+        if self.rectifier not in RECTIFIERS:
+            raise ValueError(f"unknown rectifier {self.rectifier!r}; choose from {list(RECTIFIERS)}")
+
+    def to_dict(self) -> dict:
+        """JSON-ready form."""
+        return asdict(self)
+
+
+class StablePolicy(nn.Module):
+    r"""A velocity field :math:`\pi(x)` in user units that provably reaches the target.
+
+    Internally it works in model coordinates (target at 0, extent 1, top speed 1; see
+    :class:`~snds.data.Normalization`): :math:`\pi` there is :func:`project` applied to the
+    nominal :math:`f(x) - f(0)` (so that the target is an equilibrium) with the
+    :class:`~snds.nn.Lyapunov` function :math:`V` and decay :math:`a = \rho V`.
+
+    Arguments:
+        dim: State dimension n.
+        normalization: The task's affine map of space and time.
+        config: The architecture.
+        seed: Seed of the initial weights.
+    """
+
+    def __init__(
+        self, *, dim: int, normalization: Normalization, config: PolicyConfig, seed: int = 0
+    ) -> None:
+        super().__init__()
+        torch.manual_seed(seed)
+        self.dim = dim
+        self.config = config
+        self.normalization = normalization
+        self.nominal_net = MLP(
+            dim,
+            dim,
+            hidden=config.hidden,
+            activation=config.activation,
+            fourier_features=config.fourier_features,
+            fourier_scale=config.fourier_scale,
+            seed=seed,
+        )
+        self.lyapunov = Lyapunov(
+            dim,
+            hidden=config.lyapunov_hidden,
+            activation=config.lyapunov_activation,
+            quadratic=config.quadratic,
+        )
+        self.register_buffer("center", torch.tensor(normalization.center, dtype=torch.float32))
+        self.length = normalization.length
+        self.time = normalization.time
+
+    @property
+    def stable(self) -> bool:
+        """Whether the policy carries the Lyapunov guarantee."""
+        return self.config.stable
+
+    def nominal(self, x: Tensor) -> Tensor:
+        """The nominal field f(x) - f(0) in model coordinates, (*, n) -> (*, n)."""
+        # One pass over the batch and the target together: half the calls of two passes.
+        flat = x.reshape(-1, self.dim)
+        out = self.nominal_net(torch.cat([flat, flat.new_zeros(1, self.dim)]))
+        return (out[:-1] - out[-1]).reshape(x.shape)
+
+    def decay(self, v: Tensor) -> Tensor:
+        """The required decrease rate a = rho V, shape (*,)."""
+        return self.config.decay_rate * v
+
+    def field(self, x: Tensor) -> Tensor:
+        """The policy in model coordinates, (*, n) -> (*, n)."""
+        f = self.nominal(x)
+        if not self.stable:
+            return f
+        v, grad_v = self.lyapunov.value_and_grad(x)
+        return project(f, grad_v, self.decay(v), self.config.rectifier)
+
+    def to_model(self, x: Tensor) -> Tensor:
+        """User positions (*, n) to model coordinates."""
+        return (x - self.center.to(x.dtype)) / self.length
+
+    def forward(self, x: Tensor) -> Tensor:
+        """Velocities (*, n) in user units at positions (*, n) in user units."""
+        return self.field(self.to_model(x)) * (self.length / self.time)
+
+    @torch.no_grad()
+    def predict(self, x: np.ndarray) -> np.ndarray:
+        """NumPy convenience: velocities at positions (*, n), both in user units."""
+        param = next(self.parameters())
+        return self(torch.as_tensor(x, dtype=param.dtype, device=param.device)).cpu().numpy()

@@ -1,0 +1,160 @@
+r"""Stability checks: does the policy reach the target in useful time, from everywhere?
+
+The guarantee of :func:`snds.policy.project` is :math:`\nabla V^\top \pi \le -a(x)`; this
+module checks it numerically on a dense sample and, independently of any Lyapunov function,
+rolls the policy out from random starts far from the demonstrations.
+"""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import torch
+
+from snds.data.demonstrations import Demonstrations
+from snds.policy import StablePolicy
+from snds.rollout import converged_at, rollout
+
+
+@dataclass(frozen=True)
+class StabilityReport:
+    """Outcome of :func:`check_stability`.
+
+    Attributes:
+        rollouts: Number of rollouts from random starts.
+        converged_fraction: Fraction that ended within the tolerance of the target.
+        max_final_distance: Largest distance of a rollout's end from the target (user units).
+        median_time_to_converge: Median time (s) to enter the tolerance for good, over the
+            converged rollouts (NaN if none converged).
+        samples_checked: States at which the decrease condition was checked (0 for a policy
+            without a Lyapunov function).
+        decrease_violations: States where grad V . pi > -a(x) beyond rounding error.
+        box: Half-width of the box of random starts, in user units.
+        horizon: Duration of each rollout, in seconds.
+        dt: Time step of the rollouts, in seconds.
+        tolerance: Distance counted as arrived, in user units.
+    """
+
+    rollouts: int
+    converged_fraction: float
+    max_final_distance: float
+    median_time_to_converge: float
+    samples_checked: int
+    decrease_violations: int
+    box: float
+    horizon: float
+    dt: float
+    tolerance: float
+
+    def to_dict(self) -> dict:
+        """JSON-ready form."""
+        return asdict(self)
+
+
+def _uniform_box(
+    center: np.ndarray, half_width: float, count: int, rng: np.random.Generator
+) -> np.ndarray:
+    return center + rng.uniform(-half_width, half_width, size=(count, center.shape[0]))
+
+
+@torch.no_grad()
+def decrease_violations(
+    policy: StablePolicy, x: torch.Tensor, *, rtol: float = 1e-9
+) -> int:
+    r"""Counts states where :math:`\nabla V^\top \pi \le -a(x)` fails beyond rounding.
+
+    Checked in model coordinates (a positive rescaling of user units, so the sign of the
+    condition is the same). The tolerance is relative to the size of the terms that cancel,
+    :math:`\|\nabla V\| \|f\| + a`, since the projection makes the two sides equal whenever
+    it is active.
+
+    Arguments:
+        policy: A stable policy, evaluated in the dtype of ``x`` (use float64).
+        x: States in user units, shape (B, n).
+        rtol: Relative rounding tolerance.
+    """
+    xm = policy.to_model(x)
+    value, grad = policy.lyapunov.value_and_grad(xm)
+    f = policy.nominal(xm)
+    pi = policy.field(xm)
+    decay = policy.decay(value)
+    lhs = (grad * pi).sum(-1)
+    scale = grad.norm(dim=-1) * f.norm(dim=-1) + decay
+    return int((lhs > -decay + rtol * scale).sum())
+
+
+@torch.no_grad()
+def check_stability(
+    policy: StablePolicy,
+    demos: Demonstrations,
+    *,
+    rollouts: int = 1000,
+    box_factor: float = 3.0,
+    horizon_factor: float = 10.0,
+    tolerance_factor: float = 0.01,
+    samples: int = 100_000,
+    sample_box_factor: float = 10.0,
+    seed: int = 0,
+    chunk: int = 20_000,
+) -> StabilityReport:
+    """Rolls out from random starts and checks the decrease condition on a dense sample.
+
+    Rollouts start uniformly in a box of half-width ``box_factor`` x the extent (the largest
+    distance of a demonstrated position from the target) around the target, and run for
+    ``horizon_factor`` x the longest demonstration's duration with Euler steps of the
+    demonstrations' mean time step. A rollout has converged if it ends within
+    ``tolerance_factor`` x the extent of the target: the robot must get there in useful
+    time, not only asymptotically. Everything runs in float64.
+
+    Arguments:
+        policy: The policy (a copy is evaluated in float64; the original is not changed).
+        demos: The demonstrations that define the extent, time step and horizon.
+        rollouts: Number of random starts.
+        box_factor: Half-width of their box, in extents.
+        horizon_factor: Rollout duration, in longest-demonstration durations.
+        tolerance_factor: Arrival tolerance, in extents.
+        samples: Random states for the decrease check (0 to skip).
+        sample_box_factor: Half-width of their box, in extents.
+        seed: Seed of the random starts and samples.
+        chunk: States per batch in the decrease check (bounds memory).
+    """
+    policy = _float64_copy(policy)
+    rng = np.random.default_rng(seed)
+    extent = demos.extent()
+    target = demos.target
+    dt = demos.mean_dt()
+    horizon = horizon_factor * demos.max_duration()
+    steps = int(np.ceil(horizon / dt))
+    tolerance = tolerance_factor * extent
+    starts = torch.as_tensor(_uniform_box(target, box_factor * extent, rollouts, rng))
+    states = rollout(policy, starts, dt=dt, steps=steps)
+    target_t = torch.as_tensor(target)
+    final = (states[-1] - target_t).norm(dim=-1)
+    arrived = converged_at(states, target_t, tolerance)
+    times = arrived[arrived >= 0].double() * dt
+    violations, checked = 0, 0
+    if policy.stable and samples > 0:
+        points = _uniform_box(target, sample_box_factor * extent, samples, rng)
+        for begin in range(0, samples, chunk):
+            batch = torch.as_tensor(points[begin : begin + chunk])
+            violations += decrease_violations(policy, batch)
+        checked = samples
+    finite = torch.isfinite(final)
+    return StabilityReport(
+        rollouts=rollouts,
+        converged_fraction=float(((final <= tolerance) & finite).double().mean()),
+        max_final_distance=float(final.max()) if bool(finite.all()) else float("inf"),
+        median_time_to_converge=float(times.median()) if len(times) else float("nan"),
+        samples_checked=checked,
+        decrease_violations=violations,
+        box=box_factor * extent,
+        horizon=horizon,
+        dt=dt,
+        tolerance=tolerance,
+    )
+
+
+def _float64_copy(policy: StablePolicy) -> StablePolicy:
+    return copy.deepcopy(policy).to(torch.float64).eval()

@@ -1,0 +1,55 @@
+"""Shared fixtures: small policies and synthetic demonstrations that train in seconds."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from snds.data import Demonstration, Demonstrations, Normalization
+from snds.policy import PolicyConfig, StablePolicy
+
+SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+
+SMALL = PolicyConfig(hidden=(32, 32), fourier_features=16, lyapunov_hidden=(16, 16))
+
+
+def spiral_demos(count: int = 3, samples: int = 200, dim: int = 2) -> Demonstrations:
+    """Demonstrations of a stable linear system x' = A x (a decaying spiral), ending at 0."""
+    a = -0.5 * np.eye(dim)
+    a[0, 1], a[1, 0] = 1.5, -1.5
+    demos = []
+    rng = np.random.default_rng(0)
+    times = np.linspace(0.0, 6.0, samples)
+    for _ in range(count):
+        x0 = rng.normal(size=dim)
+        x0 = 10.0 * x0 / np.linalg.norm(x0)
+        # Closed form of the linear system through its eigen-decomposition.
+        values, vectors = np.linalg.eig(a)
+        coeffs = np.linalg.solve(vectors, x0)
+        path = np.real((vectors * coeffs) @ np.exp(np.outer(values, times))).T
+        path = path - path[-1]  # end exactly at the target
+        demos.append(Demonstration(positions=path, velocities=path @ a.T, times=times))
+    return Demonstrations(tuple(demos), np.zeros(dim), "spiral")
+
+
+@pytest.fixture(scope="session")
+def spiral() -> Demonstrations:
+    return spiral_demos()
+
+
+def make_policy(
+    demos: Demonstrations, config: PolicyConfig = SMALL, seed: int = 0, dtype=torch.float64
+) -> StablePolicy:
+    policy = StablePolicy(
+        dim=demos.dim, normalization=Normalization.fit(demos), config=config, seed=seed
+    )
+    return policy.to(dtype)
+
+
+@pytest.fixture
+def policy64(spiral: Demonstrations) -> StablePolicy:
+    """An untrained float64 stable policy: the guarantee must hold before any training."""
+    return make_policy(spiral)

@@ -1,0 +1,84 @@
+import json
+
+import numpy as np
+import pytest
+
+from conftest import SHARED_DATA
+from snds.cli import main
+
+FAST = ["--steps", "150", "--rollouts", "100", "--samples", "5000"]
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    out = tmp_path_factory.mktemp("run") / "sine"
+    assert main(["--quiet", "train", "--motion", "Sine", "--demos", "3", "--out", str(out),
+                 *FAST]) == 0
+    return out
+
+
+def test_train_writes_model_metrics_and_config(trained):
+    names = {p.name for p in trained.iterdir()}
+    assert {"model.json", "model.safetensors", "metrics.json", "loss.json"} <= names
+    metrics = json.loads((trained / "metrics.json").read_text())
+    for key in ("velocity_mse", "velocity_mse_paper", "dtw", "dtw_paper", "final_distance",
+                "train_seconds"):
+        assert np.isfinite(metrics[key]), key
+    stability = metrics["stability"]
+    assert stability["rollouts"] == 100 and stability["samples_checked"] == 5000
+    assert stability["decrease_violations"] == 0
+    assert stability["converged_fraction"] == 1.0
+    description = json.loads((trained / "model.json").read_text())
+    assert description["train"]["steps"] == 150
+    assert description["data"] == {"motion": "Sine", "demos": 3}
+
+
+def test_evaluate_rewrites_the_same_metrics(trained):
+    before = json.loads((trained / "metrics.json").read_text())
+    assert main(["--quiet", "evaluate", str(trained), "--rollouts", "100", "--samples",
+                 "5000"]) == 0
+    after = json.loads((trained / "metrics.json").read_text())
+    assert after["velocity_mse"] == pytest.approx(before["velocity_mse"], rel=1e-9)
+    assert after["dtw"] == pytest.approx(before["dtw"], rel=1e-9)
+
+
+def test_plot_writes_pngs(trained, tmp_path):
+    assert main(["--quiet", "plot", str(trained), "--out", str(tmp_path)]) == 0
+    pngs = sorted(p.name for p in tmp_path.glob("*.png"))
+    assert "streamlines.png" in pngs and "lyapunov.png" in pngs
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["train", "--motion", "Sinus"], "Sinus"),
+        (["train", "--data", "missing.csv"], "missing.csv"),
+        (["evaluate", "no_such_dir"], "no_such_dir"),
+    ],
+)
+def test_bad_input_exits_2_with_one_line(argv, message, capsys, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert main(["--quiet", *argv]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and message in err and "Traceback" not in err
+    assert not any(tmp_path.iterdir())  # nothing half-written
+
+
+def test_nan_in_csv_exits_2(tmp_path, capsys):
+    path = tmp_path / "demos.csv"
+    path.write_text("demo,t,x1,x2\n0,0,1,1\n0,1,nan,0.5\n0,2,0,0\n")
+    assert main(["--quiet", "train", "--data", str(path), "--out", str(tmp_path / "m")]) == 2
+    assert "demos.csv" in capsys.readouterr().err
+    assert not (tmp_path / "m").exists()
+
+
+def test_messy_snake_single_demo_end_to_end(tmp_path):
+    path = SHARED_DATA / "Messy_snake.mat"
+    if not path.exists():
+        pytest.skip(f"{SHARED_DATA} is absent: the shared data folder is not beside the repo")
+    out = tmp_path / "snake"
+    assert main(["--quiet", "train", "--data", str(path), "--demos", "1", "--out", str(out),
+                 *FAST]) == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["stability"]["converged_fraction"] == 1.0
+    assert metrics["stability"]["decrease_violations"] == 0

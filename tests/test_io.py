@@ -1,0 +1,81 @@
+import json
+import pickle
+
+import pytest
+import torch
+from safetensors.torch import save_file
+
+from conftest import make_policy
+from snds.errors import ModelFileError
+from snds.io import FORMAT_VERSION, load_model, save_model
+
+
+@pytest.fixture
+def saved(spiral, tmp_path):
+    policy = make_policy(spiral, seed=11)
+    save_model(policy, tmp_path / "model", extra={"data": {"motion": "spiral"}})
+    return policy, tmp_path / "model"
+
+
+def test_round_trip_gives_identical_outputs(saved):
+    policy, directory = saved
+    loaded, description = load_model(directory)
+    x = torch.randn(1000, 2, dtype=torch.float64) * 20
+    assert torch.equal(policy(x), loaded(x))
+    assert description["data"] == {"motion": "spiral"}
+    assert description["format_version"] == FORMAT_VERSION
+    assert sorted(p.name for p in directory.iterdir()) == ["model.json", "model.safetensors"]
+
+
+def test_missing_files_are_named(saved):
+    _, directory = saved
+    (directory / "model.safetensors").unlink()
+    with pytest.raises(ModelFileError, match="model.safetensors: missing"):
+        load_model(directory)
+    with pytest.raises(ModelFileError, match="model.json: missing"):
+        load_model(directory.parent / "nowhere")
+
+
+def test_corrupted_json_and_weights_are_refused(saved):
+    _, directory = saved
+    weights = directory / "model.safetensors"
+    weights.write_bytes(weights.read_bytes()[:100])
+    with pytest.raises(ModelFileError, match="corrupted safetensors"):
+        load_model(directory)
+    (directory / "model.json").write_text("{not json")
+    with pytest.raises(ModelFileError, match="corrupted JSON"):
+        load_model(directory)
+
+
+def test_newer_format_is_refused(saved):
+    _, directory = saved
+    description = json.loads((directory / "model.json").read_text())
+    description["format_version"] = FORMAT_VERSION + 1
+    (directory / "model.json").write_text(json.dumps(description))
+    with pytest.raises(ModelFileError, match="newer"):
+        load_model(directory)
+
+
+def test_wrong_tensor_shapes_are_refused(saved):
+    policy, directory = saved
+    tensors = {k: v.clone() for k, v in policy.state_dict().items()}
+    name = next(k for k in tensors if k.endswith("weight"))
+    tensors[name] = torch.zeros(3, 3, dtype=torch.float64)
+    save_file(tensors, str(directory / "model.safetensors"))
+    with pytest.raises(ModelFileError, match="has shape"):
+        load_model(directory)
+
+
+class _Exploit:
+    def __reduce__(self):
+        return (exec, ("import pathlib; pathlib.Path('PWNED').write_text('x')",))
+
+
+def test_a_pickle_in_place_of_the_weights_is_refused_and_never_run(saved, tmp_path,
+                                                                   monkeypatch):
+    _, directory = saved
+    monkeypatch.chdir(tmp_path)
+    (directory / "model.safetensors").write_bytes(pickle.dumps(_Exploit()))
+    with pytest.raises(ModelFileError):
+        load_model(directory)
+    assert not (tmp_path / "PWNED").exists()

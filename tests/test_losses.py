@@ -1,0 +1,43 @@
+import numpy as np
+import torch
+
+from snds.data import Demonstration, Demonstrations, Normalization, no_split, split_samples
+from snds.losses import make_samples, srvf, velocity_loss, window_loss
+
+
+def _line() -> Demonstrations:
+    t = np.linspace(0, 1, 11)
+    x = np.stack([1 - t, np.zeros_like(t)], axis=1)
+    v = np.tile([-1.0, 0.0], (11, 1))
+    return Demonstrations((Demonstration(positions=x, velocities=v, times=t),), np.zeros(2))
+
+
+def test_windows_only_cover_training_samples():
+    demos = _line()
+    split = split_samples(demos, test_fraction=0.3, seed=0)
+    samples = make_samples(demos, Normalization.fit(demos), split, window=2)
+    train = set(np.round(Normalization.fit(demos).positions_to_model(
+        demos[0].positions[split.train[0]])[:, 0], 9))
+    for start, targets in zip(samples.window_starts, samples.window_targets):
+        assert round(float(start[0]), 9) in train
+        assert all(round(float(t[0]), 9) in train for t in targets)
+
+
+def test_window_loss_is_zero_for_the_exact_field_and_mean_velocity_scaled():
+    demos = _line()
+    norm = Normalization.fit(demos)
+    s = make_samples(demos, norm, no_split(demos), window=2)
+    exact = lambda x: torch.tensor([-1.0, 0.0], dtype=x.dtype).expand_as(x)  # noqa: E731
+    assert window_loss(exact, s.window_starts, s.window_targets, s.window_steps).item() < 1e-20
+    # A field off by 0.1 in velocity gives (1/2 + 1/4) * 0.01 whatever the step.
+    off = lambda x: torch.tensor([-0.9, 0.0], dtype=x.dtype).expand_as(x)  # noqa: E731
+    value = window_loss(off, s.window_starts, s.window_targets, s.window_steps).item()
+    assert abs(value - 0.75 * 0.01) < 1e-9
+
+
+def test_velocity_loss_values():
+    pred = torch.tensor([[1.0, 0.0], [0.0, 0.0]])
+    true = torch.zeros(2, 2)
+    assert velocity_loss(pred, true, "mse").item() == 0.5
+    q = srvf(torch.tensor([[4.0, 0.0]]), eps=0.0)
+    torch.testing.assert_close(q, torch.tensor([[2.0, 0.0]]))

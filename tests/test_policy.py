@@ -1,0 +1,90 @@
+import dataclasses
+
+import pytest
+import torch
+
+from conftest import SMALL, make_policy
+from snds.policy import RECTIFIERS, project
+
+
+def _scrambled(policy):
+    # Random weights far from initialisation: the guarantee must not depend on training.
+    with torch.no_grad():
+        for p in policy.parameters():
+            p.add_(0.5 * torch.randn_like(p))
+    return policy
+
+
+@pytest.mark.parametrize("rectifier", list(RECTIFIERS))
+@pytest.mark.parametrize("scale", [1e-3, 1.0, 1e3])
+def test_decrease_holds_at_random_and_far_points(spiral, rectifier, scale):
+    # GIVEN a stable policy with arbitrary weights, in float64
+    config = dataclasses.replace(SMALL, rectifier=rectifier, decay_rate=0.5)
+    policy = _scrambled(make_policy(spiral, config, seed=1))
+    # WHEN it is evaluated at states up to 1e3 times the data's extent
+    x = scale * torch.randn(20_000, 2, dtype=torch.float64)
+    v, grad_v = policy.lyapunov.value_and_grad(x)
+    pi = policy.field(x)
+    # THEN V decreases at least at the promised rate everywhere
+    lhs = (grad_v * pi).sum(-1)
+    slack = 1e-9 * (grad_v.norm(dim=-1) * policy.nominal(x).norm(dim=-1) + v)
+    assert (lhs <= -policy.decay(v) + slack).all()
+    assert (policy.decay(v) > 0).all()
+
+
+def test_relaxed_mode_only_promises_non_increase(spiral):
+    config = dataclasses.replace(SMALL, decay_rate=0.0)
+    policy = _scrambled(make_policy(spiral, config, seed=2))
+    x = torch.randn(10_000, 2, dtype=torch.float64)
+    _, grad_v = policy.lyapunov.value_and_grad(x)
+    lhs = (grad_v * policy.field(x)).sum(-1)
+    assert (lhs <= 1e-12).all()
+
+
+def test_target_is_an_equilibrium(spiral):
+    policy = _scrambled(make_policy(spiral, seed=3))
+    target = torch.tensor(spiral.target).unsqueeze(0)
+    assert policy(target).abs().max().item() == 0.0
+    # and continuous there: the speed shrinks in proportion to the distance to the target
+    directions = torch.randn(100, 2, dtype=torch.float64)
+    speed = [policy(target + r * directions).norm(dim=-1) for r in (1e-4, 1e-6)]
+    assert (speed[1] <= 0.02 * speed[0]).all()
+
+
+def test_project_leaves_fast_enough_fields_alone():
+    grad_v = torch.tensor([[1.0, 0.0]], dtype=torch.float64)
+    f = torch.tensor([[-2.0, 1.0]], dtype=torch.float64)
+    decay = torch.tensor([1.0], dtype=torch.float64)
+    # grad V . f = -2 <= -1: no correction with ReLU
+    torch.testing.assert_close(project(f, grad_v, decay), f)
+    # grad V . f = +3: the component along grad V is replaced so that grad V . pi = -a
+    f = torch.tensor([[3.0, 1.0]], dtype=torch.float64)
+    torch.testing.assert_close(project(f, grad_v, decay), torch.tensor([[-1.0, 1.0]]).double())
+
+
+def test_project_is_safe_where_gradient_vanishes():
+    f = torch.zeros(1, 2)
+    out = project(f, torch.zeros(1, 2), torch.zeros(1))
+    assert torch.isfinite(out).all() and (out == 0).all()
+
+
+def test_user_units_match_model_units(spiral):
+    policy = make_policy(spiral, seed=4)
+    x = torch.randn(50, 2, dtype=torch.float64) * 5
+    norm = policy.normalization
+    expected = policy.field((x - torch.tensor(norm.center)) / norm.length) * (
+        norm.length / norm.time
+    )
+    torch.testing.assert_close(policy(x), expected)
+
+
+def test_unconstrained_policy_is_the_nominal_field(spiral):
+    policy = make_policy(spiral, dataclasses.replace(SMALL, stable=False), seed=5)
+    x = torch.randn(10, 2, dtype=torch.float64)
+    torch.testing.assert_close(policy.field(x), policy.nominal(x))
+
+
+def test_same_seed_same_policy(spiral):
+    a, b = make_policy(spiral, seed=7), make_policy(spiral, seed=7)
+    x = torch.randn(10, 2, dtype=torch.float64)
+    assert torch.equal(a(x), b(x))

@@ -1,0 +1,47 @@
+import dataclasses
+
+import numpy as np
+import torch
+
+from conftest import SMALL, make_policy
+from snds.data import Demonstration, Demonstrations
+from snds.stability import check_stability, decrease_violations
+
+
+def test_untrained_stable_policy_reaches_the_target_from_everywhere(spiral):
+    # The guarantee needs no training: random weights still converge (a = rho V > 0).
+    policy = make_policy(spiral, dataclasses.replace(SMALL, decay_rate=1.0), seed=3)
+    report = check_stability(policy, spiral, rollouts=200, samples=20_000, seed=0)
+    assert report.converged_fraction == 1.0
+    assert report.decrease_violations == 0
+    assert report.samples_checked == 20_000
+    assert report.max_final_distance <= report.tolerance
+
+
+def test_decrease_violations_are_detected_for_an_unprojected_field(spiral):
+    x = torch.as_tensor(np.random.default_rng(0).normal(size=(5000, 2)) * 10)
+    stable = make_policy(spiral, SMALL, seed=0)
+    # The same networks without the projection: the nominal field ignores V.
+    unprojected = make_policy(spiral, dataclasses.replace(SMALL, stable=False), seed=0)
+    unprojected.load_state_dict(stable.state_dict())
+    assert decrease_violations(stable, x) == 0
+    assert decrease_violations(unprojected, x) > 0
+
+
+def test_a_field_that_stops_short_is_reported_as_not_converged():
+    t = np.linspace(0, 1, 50)
+    x = np.stack([1 - t, 0 * t], axis=1)
+    demos = Demonstrations(
+        (Demonstration(positions=x, velocities=np.tile([-1.0, 0], (50, 1)), times=t),),
+        np.zeros(2),
+    )
+
+    class Stuck(torch.nn.Module):
+        stable = False
+
+        def forward(self, x):
+            return torch.zeros_like(x)
+
+    report = check_stability(Stuck(), demos, rollouts=50, samples=0, seed=0)
+    assert report.converged_fraction < 0.05
+    assert report.decrease_violations == 0 and report.samples_checked == 0

@@ -1,0 +1,75 @@
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+import snds.train as train_module
+from conftest import SMALL, make_policy
+from snds.data import no_split, split_samples
+from snds.evaluate import accuracy
+from snds.train import TrainConfig, TrainingError, fit
+
+FAST = TrainConfig(steps=400, batch_size=256, window_batch_size=64, lr=1e-2)
+
+
+def test_fit_learns_a_linear_system_and_stays_stable(spiral):
+    policy = make_policy(spiral, dtype=torch.float32)
+    split = split_samples(spiral, test_fraction=0.2, seed=0)
+    result = fit(policy, spiral, split, FAST, progress=False)
+    assert result.steps == FAST.steps and result.restarts == 0
+    assert np.mean(result.history[-20:]) < 0.1 * np.mean(result.history[:20])
+    metrics = accuracy(policy.double(), spiral, split)
+    assert metrics["velocity_mse_paper"] < 5e-3
+    assert metrics["final_distance"] < 0.05 * spiral.extent()
+
+
+def test_same_seed_same_result(spiral):
+    config = dataclasses.replace(FAST, steps=30)
+    runs = []
+    for _ in range(2):
+        policy = make_policy(spiral, dtype=torch.float32)
+        runs.append(fit(policy, spiral, no_split(spiral), config, progress=False).history)
+    assert runs[0] == runs[1]
+
+
+def test_recovers_from_a_nan_loss_without_a_rerun(spiral, monkeypatch):
+    real_loss = train_module._loss
+    calls = {"n": 0}
+
+    def flaky(*args):
+        calls["n"] += 1
+        loss = real_loss(*args)
+        return loss * float("nan") if calls["n"] == 10 else loss
+
+    monkeypatch.setattr(train_module, "_loss", flaky)
+    policy = make_policy(spiral, dtype=torch.float32)
+    result = fit(policy, spiral, no_split(spiral), dataclasses.replace(FAST, steps=50),
+                 progress=False)
+    assert result.restarts == 1
+    assert all(np.isfinite(result.history))
+    assert all(torch.isfinite(p).all() for p in policy.parameters())
+
+
+def test_gives_up_with_a_clear_error_after_repeated_divergence(spiral, monkeypatch):
+    monkeypatch.setattr(
+        train_module, "_loss", lambda *args: torch.tensor(float("nan"), requires_grad=True)
+    )
+    policy = make_policy(spiral, dtype=torch.float32)
+    with pytest.raises(TrainingError, match="diverged"):
+        fit(policy, spiral, no_split(spiral), FAST, progress=False)
+
+
+def test_early_stopping_on_plateau(spiral):
+    policy = make_policy(spiral, dtype=torch.float32)
+    config = dataclasses.replace(FAST, steps=5000, patience=50, lr=1e-5, min_improvement=0.5)
+    result = fit(policy, spiral, no_split(spiral), config, progress=False)
+    assert result.stopped == "plateau" and result.steps < 5000
+
+
+@pytest.mark.parametrize("shape", ["mse", "srvf"])
+def test_velocity_losses_and_window_train(spiral, shape):
+    policy = make_policy(spiral, SMALL, dtype=torch.float32)
+    config = dataclasses.replace(FAST, steps=100, velocity_shape=shape, window=2)
+    result = fit(policy, spiral, no_split(spiral), config, progress=False)
+    assert result.history[-1] < result.history[0]
