@@ -16,13 +16,13 @@ SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 SMALL = PolicyConfig(hidden=(32, 32), fourier_features=16, lyapunov_hidden=(16, 16))
 
 
-def spiral_demos(count: int = 3, samples: int = 200, dim: int = 2) -> Demonstrations:
+def spiral_demos(count: int = 3, samples: int = 400, dim: int = 2) -> Demonstrations:
     """Demonstrations of a stable linear system x' = A x (a decaying spiral), ending at 0."""
     a = -0.5 * np.eye(dim)
     a[0, 1], a[1, 0] = 1.5, -1.5
     demos = []
     rng = np.random.default_rng(0)
-    times = np.linspace(0.0, 6.0, samples)
+    times = np.linspace(0.0, 16.0, samples)
     for _ in range(count):
         x0 = rng.normal(size=dim)
         x0 = 10.0 * x0 / np.linalg.norm(x0)
@@ -30,7 +30,7 @@ def spiral_demos(count: int = 3, samples: int = 200, dim: int = 2) -> Demonstrat
         values, vectors = np.linalg.eig(a)
         coeffs = np.linalg.solve(vectors, x0)
         path = np.real((vectors * coeffs) @ np.exp(np.outer(values, times))).T
-        path = path - path[-1]  # end exactly at the target
+        path = path - path[-1]  # a shift of 5e-4: end exactly at the target
         demos.append(Demonstration(positions=path, velocities=path @ a.T, times=times))
     return Demonstrations(tuple(demos), np.zeros(dim), "spiral")
 

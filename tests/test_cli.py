@@ -3,8 +3,9 @@ import json
 import numpy as np
 import pytest
 
-from conftest import SHARED_DATA
 from snds.cli import main
+
+from conftest import SHARED_DATA
 
 FAST = ["--steps", "150", "--rollouts", "100", "--samples", "5000"]
 
@@ -12,8 +13,10 @@ FAST = ["--steps", "150", "--rollouts", "100", "--samples", "5000"]
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory):
     out = tmp_path_factory.mktemp("run") / "sine"
-    assert main(["--quiet", "train", "--motion", "Sine", "--demos", "3", "--out", str(out),
-                 *FAST]) == 0
+    assert (
+        main(["--quiet", "train", "--motion", "Sine", "--demos", "3", "--out", str(out), *FAST])
+        == 0
+    )
     return out
 
 
@@ -21,8 +24,14 @@ def test_train_writes_model_metrics_and_config(trained):
     names = {p.name for p in trained.iterdir()}
     assert {"model.json", "model.safetensors", "metrics.json", "loss.json"} <= names
     metrics = json.loads((trained / "metrics.json").read_text())
-    for key in ("velocity_mse", "velocity_mse_paper", "dtw", "dtw_paper", "final_distance",
-                "train_seconds"):
+    for key in (
+        "velocity_mse",
+        "velocity_mse_paper",
+        "dtw",
+        "dtw_paper",
+        "final_distance",
+        "train_seconds",
+    ):
         assert np.isfinite(metrics[key]), key
     stability = metrics["stability"]
     assert stability["rollouts"] == 100 and stability["samples_checked"] == 5000
@@ -35,8 +44,9 @@ def test_train_writes_model_metrics_and_config(trained):
 
 def test_evaluate_rewrites_the_same_metrics(trained):
     before = json.loads((trained / "metrics.json").read_text())
-    assert main(["--quiet", "evaluate", str(trained), "--rollouts", "100", "--samples",
-                 "5000"]) == 0
+    assert (
+        main(["--quiet", "evaluate", str(trained), "--rollouts", "100", "--samples", "5000"]) == 0
+    )
     after = json.loads((trained / "metrics.json").read_text())
     assert after["velocity_mse"] == pytest.approx(before["velocity_mse"], rel=1e-9)
     assert after["dtw"] == pytest.approx(before["dtw"], rel=1e-9)
@@ -77,8 +87,10 @@ def test_messy_snake_single_demo_end_to_end(tmp_path):
     if not path.exists():
         pytest.skip(f"{SHARED_DATA} is absent: the shared data folder is not beside the repo")
     out = tmp_path / "snake"
-    assert main(["--quiet", "train", "--data", str(path), "--demos", "1", "--out", str(out),
-                 *FAST]) == 0
+    assert (
+        main(["--quiet", "train", "--data", str(path), "--demos", "1", "--out", str(out), *FAST])
+        == 0
+    )
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["stability"]["converged_fraction"] == 1.0
     assert metrics["stability"]["decrease_violations"] == 0

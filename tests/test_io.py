@@ -5,9 +5,10 @@ import pytest
 import torch
 from safetensors.torch import save_file
 
-from conftest import make_policy
 from snds.errors import ModelFileError
 from snds.io import FORMAT_VERSION, load_model, save_model
+
+from conftest import make_policy
 
 
 @pytest.fixture
@@ -71,8 +72,7 @@ class _Exploit:
         return (exec, ("import pathlib; pathlib.Path('PWNED').write_text('x')",))
 
 
-def test_a_pickle_in_place_of_the_weights_is_refused_and_never_run(saved, tmp_path,
-                                                                   monkeypatch):
+def test_a_pickle_in_place_of_the_weights_is_refused_and_never_run(saved, tmp_path, monkeypatch):
     _, directory = saved
     monkeypatch.chdir(tmp_path)
     (directory / "model.safetensors").write_bytes(pickle.dumps(_Exploit()))

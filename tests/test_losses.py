@@ -16,8 +16,11 @@ def test_windows_only_cover_training_samples():
     demos = _line()
     split = split_samples(demos, test_fraction=0.3, seed=0)
     samples = make_samples(demos, Normalization.fit(demos), split, window=2)
-    train = set(np.round(Normalization.fit(demos).positions_to_model(
-        demos[0].positions[split.train[0]])[:, 0], 9))
+    train = set(
+        np.round(
+            Normalization.fit(demos).positions_to_model(demos[0].positions[split.train[0]])[:, 0], 9
+        )
+    )
     for start, targets in zip(samples.window_starts, samples.window_targets):
         assert round(float(start[0]), 9) in train
         assert all(round(float(t[0]), 9) in train for t in targets)

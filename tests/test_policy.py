@@ -3,8 +3,9 @@ import dataclasses
 import pytest
 import torch
 
-from conftest import SMALL, make_policy
 from snds.policy import RECTIFIERS, project
+
+from conftest import SMALL, make_policy
 
 
 def _scrambled(policy):

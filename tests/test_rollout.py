@@ -2,8 +2,9 @@ import math
 
 import torch
 
-from conftest import make_policy
 from snds.rollout import converged_at, guarded_rollout, rollout
+
+from conftest import make_policy
 
 
 def linear(x):

@@ -3,9 +3,10 @@ import dataclasses
 import numpy as np
 import torch
 
-from conftest import SMALL, make_policy
 from snds.data import Demonstration, Demonstrations
 from snds.stability import check_stability, decrease_violations
+
+from conftest import SMALL, make_policy
 
 
 def test_untrained_stable_policy_reaches_the_target_from_everywhere(spiral):

@@ -5,10 +5,11 @@ import pytest
 import torch
 
 import snds.train as train_module
-from conftest import SMALL, make_policy
 from snds.data import no_split, split_samples
 from snds.evaluate import accuracy
 from snds.train import TrainConfig, TrainingError, fit
+
+from conftest import SMALL, make_policy
 
 FAST = TrainConfig(steps=400, batch_size=256, window_batch_size=64, lr=1e-2)
 
@@ -44,8 +45,9 @@ def test_recovers_from_a_nan_loss_without_a_rerun(spiral, monkeypatch):
 
     monkeypatch.setattr(train_module, "_loss", flaky)
     policy = make_policy(spiral, dtype=torch.float32)
-    result = fit(policy, spiral, no_split(spiral), dataclasses.replace(FAST, steps=50),
-                 progress=False)
+    result = fit(
+        policy, spiral, no_split(spiral), dataclasses.replace(FAST, steps=50), progress=False
+    )
     assert result.restarts == 1
     assert all(np.isfinite(result.history))
     assert all(torch.isfinite(p).all() for p in policy.parameters())

@@ -30,9 +30,7 @@ def reproduce(policy: StablePolicy, demos: Demonstrations, indices: list[int]) -
     for i in indices:
         demo = demos[i]
         steps = len(demo.times) - 1
-        path = rollout_numpy(
-            policy, demo.positions[:1], dt=demo.duration / steps, steps=steps
-        )
+        path = rollout_numpy(policy, demo.positions[:1], dt=demo.duration / steps, steps=steps)
         paths.append(path[0])
     return paths
 

@@ -130,7 +130,9 @@ def load_model(directory: Path) -> tuple[StablePolicy, dict]:
             dim=int(description["dim"]), normalization=normalization, config=config
         )
     except (TypeError, ValueError, DataError) as error:
-        raise ModelFileError(f"{directory / DESCRIPTION}: invalid architecture ({error})") from error
+        raise ModelFileError(
+            f"{directory / DESCRIPTION}: invalid architecture ({error})"
+        ) from error
     weights = directory / WEIGHTS
     if not weights.is_file():
         raise ModelFileError(f"{weights}: missing")

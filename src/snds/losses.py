@@ -76,9 +76,7 @@ def make_samples(
         positions=as_tensor(positions),
         velocities=as_tensor(np.concatenate(vs)),
         window_starts=as_tensor(np.concatenate(starts) if starts else np.zeros((0, n))),
-        window_targets=as_tensor(
-            np.concatenate(targets) if targets else np.zeros((0, window, n))
-        ),
+        window_targets=as_tensor(np.concatenate(targets) if targets else np.zeros((0, window, n))),
         window_steps=as_tensor(np.concatenate(steps) if steps else np.zeros((0, window))),
     )
 
@@ -98,8 +96,9 @@ def velocity_loss(pred: Tensor, true: Tensor, shape: str = "mse") -> Tensor:
     return ((q(pred) - q(true)) ** 2).sum(-1).mean()
 
 
-def window_loss(field: Callable[[Tensor], Tensor], starts: Tensor, targets: Tensor,
-                steps: Tensor) -> Tensor:
+def window_loss(
+    field: Callable[[Tensor], Tensor], starts: Tensor, targets: Tensor, steps: Tensor
+) -> Tensor:
     r"""Multi-step Euler window: :math:`\sum_i 2^{-i} \mathbb{E}\|\hat x_{s+i} - x_{s+i}\|^2`.
 
     :math:`\hat x` is the Euler rollout of the policy from the demonstrated :math:`x_s` with

@@ -91,7 +91,9 @@ class PolicyConfig:
         if self.decay_rate < 0:
             raise ValueError(f"decay_rate must be >= 0, got {self.decay_rate}")
         if self.rectifier not in RECTIFIERS:
-            raise ValueError(f"unknown rectifier {self.rectifier!r}; choose from {list(RECTIFIERS)}")
+            raise ValueError(
+                f"unknown rectifier {self.rectifier!r}; choose from {list(RECTIFIERS)}"
+            )
 
     def to_dict(self) -> dict:
         """JSON-ready form."""

@@ -92,7 +92,9 @@ class Demonstrations:
             raise DataError(f"demonstrations have different dimensions: {sorted(dims)}")
         target = _as_float_array(self.target, "target", 1)
         if target.shape[0] != demos[0].dim:
-            raise DataError(f"target has dimension {target.shape[0]}, demonstrations {demos[0].dim}")
+            raise DataError(
+                f"target has dimension {target.shape[0]}, demonstrations {demos[0].dim}"
+            )
         object.__setattr__(self, "demos", demos)
         object.__setattr__(self, "target", target)
 

@@ -1,0 +1,31 @@
+"""Demonstrations: loading (LASA, .mat, .csv, .npz), common target, normalisation, splits."""
+
+from snds.data.demonstrations import (
+    Demonstration,
+    Demonstrations,
+    Normalization,
+    Split,
+    no_split,
+    split_demos,
+    split_samples,
+)
+from snds.data.files import load_csv, load_demonstrations, load_mat, load_npz
+from snds.data.lasa import LASA_NAMES, load_lasa
+from snds.data.targets import common_target
+
+__all__ = [
+    "LASA_NAMES",
+    "Demonstration",
+    "Demonstrations",
+    "Normalization",
+    "Split",
+    "common_target",
+    "load_csv",
+    "load_demonstrations",
+    "load_lasa",
+    "load_mat",
+    "load_npz",
+    "no_split",
+    "split_demos",
+    "split_samples",
+]

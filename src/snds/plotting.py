@@ -1,0 +1,532 @@
+"""Plots: streamlines with demonstrations and rollouts, Lyapunov contours, loss, V over time.
+
+Every function draws on its own :class:`~matplotlib.figure.Figure`, never through pyplot, so
+it needs no display and leaves the user's backend alone (selecting Agg at import would
+silently turn off a notebook's inline plots); it writes the PNG atomically (a reader never
+sees half a file) and returns the path it wrote.
+
+States with more than two coordinates are shown in the plane of x1 and x2 through the target,
+with x3..xn held at the target's values; rollouts are projected onto that plane.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from collections.abc import Sequence
+from pathlib import Path
+
+import matplotlib
+import numpy as np
+import torch
+from matplotlib import colors
+from matplotlib.figure import Figure
+
+from snds.data.demonstrations import Demonstrations
+from snds.policy import StablePolicy
+from snds.rollout import rollout_numpy
+
+FIGSIZE = (6.0, 4.5)  # plots against time or step
+AXES_INCHES = 4.6  # longer side of the axes of a plot in the plane
+DPI = 150
+GRID = 100  # points per side of the evaluation grid
+#: Below this V (model units, about 1e-5 of the extent from the target) a rollout has arrived.
+V_FLOOR = 1e-10
+
+DEMO_COLOR = "#262626"
+ROLLOUT_COLOR = "#d9480f"
+PERTURBED_COLOR = "#6741d9"
+# The streamlines are the backdrop: a pale slice of a blue map keeps them below the data.
+STREAM_CMAP = colors.LinearSegmentedColormap.from_list(
+    "snds_stream", matplotlib.colormaps["Blues"](np.linspace(0.25, 0.8, 256))
+)
+
+
+def plot_streamlines(
+    policy: StablePolicy,
+    demos: Demonstrations,
+    path: str | Path,
+    *,
+    rollouts: np.ndarray | None = None,
+    perturbed: np.ndarray | None = None,
+    title: str | None = None,
+) -> Path:
+    """Streamlines of the policy with the demonstrations, rollouts and the target.
+
+    Arguments:
+        policy: The policy, float64 and in eval mode.
+        demos: The demonstrations, drawn as thin dark lines with a marker at each start.
+        path: Where to write the PNG.
+        rollouts: Rollouts from the demonstrations' starts, shape (B, T, n); solid lines.
+        perturbed: Rollouts from perturbed starts, shape (B, T, n); dashed lines.
+        title: Title; the demonstrations' name by default.
+
+    Returns:
+        The path written.
+    """
+    starts = [r[:, 0] for r in (rollouts, perturbed) if r is not None]
+    (x1, x2), points = _plane(demos, include=starts)
+    velocity = policy.predict(points)[:, :2].reshape(GRID, GRID, 2)
+    speed = np.linalg.norm(velocity, axis=-1)
+
+    fig, ax = _figure(x1, x2)
+    stream = ax.streamplot(
+        x1,
+        x2,
+        velocity[..., 0],
+        velocity[..., 1],
+        color=speed,
+        cmap=STREAM_CMAP,
+        norm=colors.Normalize(0.0, float(np.percentile(speed, 98))),
+        density=1.3,
+        linewidth=0.7,
+        arrowsize=0.7,
+        zorder=1,
+    )
+    colorbar = fig.colorbar(
+        stream.lines, ax=ax, fraction=0.04, pad=0.02, extend="max", extendfrac=0.03
+    )
+    colorbar.set_label("speed")
+    colorbar.outline.set_visible(False)
+    _draw_demos(ax, demos, color=DEMO_COLOR)
+    if rollouts is not None:
+        _draw_rollouts(
+            ax,
+            rollouts,
+            color=ROLLOUT_COLOR,
+            style="-",
+            label="rollout from demo start",
+            starts=False,
+        )
+    if perturbed is not None:
+        _draw_rollouts(
+            ax, perturbed, color=PERTURBED_COLOR, style="--", label="perturbed rollout", starts=True
+        )
+    _draw_target(ax, demos.target)
+    projected = rollouts is not None or perturbed is not None
+    title = title if title is not None else _name(demos, policy)
+    _finish(ax, x1, x2, demos.dim, title, projected=projected)
+    _legend(fig, ax)
+    return _save(fig, path)
+
+
+def plot_lyapunov(policy: StablePolicy, demos: Demonstrations, path: str | Path) -> Path:
+    """Filled contours of the Lyapunov function V with the demonstrations over them.
+
+    Arguments:
+        policy: A stable policy, float64 and in eval mode.
+        demos: The demonstrations.
+        path: Where to write the PNG.
+
+    Returns:
+        The path written.
+
+    Raises:
+        ValueError: If the policy has no Lyapunov guarantee (``policy.stable`` is False).
+    """
+    _require_stable(policy)
+    (x1, x2), points = _plane(demos)
+    v = _lyapunov(policy, points).reshape(GRID, GRID)
+    # V grows quadratically away from the target: log-spaced levels show the basin's shape
+    # near the target as well as far out, where linear levels would put nearly every line.
+    positive = v[v > 0]
+    low = max(float(np.percentile(positive, 0.5)), float(positive.max()) * 1e-6)
+    levels = np.geomspace(low, float(v.max()), 16)
+
+    fig, ax = _figure(x1, x2)
+    filled = ax.contourf(
+        x1,
+        x2,
+        np.clip(v, low, None),
+        levels=levels,
+        norm=colors.LogNorm(low, float(v.max())),
+        cmap="viridis",
+        zorder=0,
+    )
+    ax.contour(x1, x2, v, levels=levels, colors="white", linewidths=0.4, alpha=0.5, zorder=1)
+    colorbar = fig.colorbar(filled, ax=ax, fraction=0.04, pad=0.02)
+    decades = np.arange(np.ceil(np.log10(low)), np.floor(np.log10(v.max())) + 1)
+    colorbar.set_ticks(10.0**decades, labels=[f"$10^{{{int(d)}}}$" for d in decades])
+    colorbar.minorticks_off()
+    colorbar.set_label("V (model units)")
+    colorbar.outline.set_visible(False)
+    # White lines read on every colour of the map; no legend, whose white entries would not.
+    _draw_demos(ax, demos, color="white")
+    _draw_target(ax, demos.target)
+    _finish(
+        ax, x1, x2, demos.dim, "Lyapunov function V" + (f" — {demos.name}" if demos.name else "")
+    )
+    return _save(fig, path)
+
+
+def plot_loss(history: list[float], path: str | Path) -> Path:
+    """Training loss per step on a log axis, raw and smoothed.
+
+    Arguments:
+        history: The loss at every step.
+        path: Where to write the PNG.
+
+    Returns:
+        The path written.
+    """
+    loss = np.asarray(history, dtype=np.float64)
+    steps = np.arange(1, loss.size + 1)
+    fig, ax = _figure()
+    ax.plot(steps, loss, color="#74c0fc", linewidth=0.8, alpha=0.8, label="loss")
+    if loss.size >= 20:
+        ax.plot(steps, _smooth(loss), color="#1864ab", linewidth=1.6, label="smoothed")
+        ax.legend(frameon=False, loc="upper right")
+    ax.set_yscale("log")
+    ax.set_xlabel("step")
+    ax.set_ylabel("loss")
+    if loss.size:
+        ax.set_title(f"Training loss (final {loss[-1]:.3g}, best {np.nanmin(loss):.3g})")
+    ax.grid(True, which="major", color="0.9", linewidth=0.6)
+    _despine(ax)
+    return _save(fig, path)
+
+
+def plot_rollout_lyapunov(
+    policy: StablePolicy,
+    rollouts: np.ndarray,
+    dt: float,
+    path: str | Path,
+    *,
+    perturbed: np.ndarray | None = None,
+) -> Path:
+    """V along rollouts against time, on a log axis: a stable policy makes each curve fall.
+
+    A curve ends where V drops below :data:`V_FLOOR`, i.e. where the rollout has reached the
+    target up to rounding; below that, V is rounding noise that would only clutter the plot.
+
+    Arguments:
+        policy: A stable policy, float64 and in eval mode.
+        rollouts: States in user units, shape (B, T, n); solid lines.
+        dt: Time step of the rollouts, in seconds.
+        path: Where to write the PNG.
+        perturbed: Rollouts from perturbed starts, same time step; dashed lines.
+
+    Returns:
+        The path written.
+
+    Raises:
+        ValueError: If the policy has no Lyapunov guarantee.
+    """
+    _require_stable(policy)
+    fig, ax = _figure()
+    rises = total = 0
+    for group, color, style, label in (
+        (rollouts, ROLLOUT_COLOR, "-", "from demo start"),
+        (perturbed, PERTURBED_COLOR, "--", "from perturbed start"),
+    ):
+        if group is None or len(group) == 0:
+            continue
+        group = np.asarray(group, dtype=np.float64)
+        count, length, dim = group.shape
+        v = _lyapunov(policy, group.reshape(-1, dim)).reshape(count, length)
+        above = v > V_FLOOR
+        # Only steps that start above the floor count: below it V is rounding noise.
+        steps = above[:, :-1]
+        rises += int(((np.diff(v, axis=1) > 0) & steps).sum())
+        total += int(steps.sum())
+        times = dt * np.arange(length)
+        for i, curve in enumerate(v):
+            # Keep the first point below the floor so that each curve visibly reaches it.
+            arrived = np.flatnonzero(~above[i])
+            stop = arrived[0] + 1 if arrived.size else length
+            ax.plot(
+                times[:stop],
+                np.maximum(curve[:stop], V_FLOOR),
+                style,
+                color=color,
+                linewidth=1.0,
+                alpha=0.75,
+                label=label if i == 0 else None,
+            )
+    ax.axhline(V_FLOOR, color="0.6", linewidth=0.8, linestyle=":", zorder=0)
+    ax.annotate(
+        "at the target (up to rounding)",
+        (0.01, V_FLOOR),
+        xycoords=("axes fraction", "data"),
+        xytext=(0, 3),
+        textcoords="offset points",
+        ha="left",
+        va="bottom",
+        fontsize="x-small",
+        color="0.45",
+    )
+    ax.set_yscale("log")
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("V (model units)")
+    verdict = "V decreases at every step" if rises == 0 else f"V rises at {rises} of {total} steps"
+    ax.set_title(f"Lyapunov function along rollouts: {verdict}", fontsize="medium")
+    ax.legend(frameon=False, loc="upper right", fontsize="small")
+    ax.grid(True, which="major", color="0.9", linewidth=0.6)
+    _despine(ax)
+    return _save(fig, path)
+
+
+def plot_all(
+    policy: StablePolicy,
+    demos: Demonstrations,
+    out_dir: str | Path,
+    *,
+    history: list[float] | None = None,
+    seed: int = 0,
+) -> list[Path]:
+    """Rolls the policy out from the demonstrations' starts and from perturbed starts, and
+    writes every plot that applies into ``out_dir``.
+
+    Perturbed starts are each demonstration's start moved by up to 30 % of the extent in every
+    coordinate, plus 6 uniform starts in the demonstrations' bounding box enlarged 1.5 times.
+
+    Arguments:
+        policy: The policy, float64 and in eval mode.
+        demos: The demonstrations.
+        out_dir: Folder of the PNGs (created if missing).
+        history: Training loss per step; ``loss.png`` is written when given.
+        seed: Seed of the perturbations.
+
+    Returns:
+        The paths written: ``streamlines.png``, then ``lyapunov.png`` and
+        ``rollout_lyapunov.png`` for a stable policy, then ``loss.png``.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(seed)
+    dt = demos.mean_dt()
+    steps = int(1.5 * demos.max_duration() / dt)
+    starts = np.stack([demo.positions[0] for demo in demos])
+    extent = demos.extent()
+    low, high = _box(demos.positions(), demos.target, scale=1.5)
+    perturbed_starts = np.concatenate(
+        [
+            starts + rng.uniform(-0.3, 0.3, size=starts.shape) * extent,
+            rng.uniform(low, high, size=(6, demos.dim)),
+        ]
+    )
+    rollouts = rollout_numpy(policy, starts, dt=dt, steps=steps)
+    perturbed = rollout_numpy(policy, perturbed_starts, dt=dt, steps=steps)
+
+    paths = [
+        plot_streamlines(
+            policy, demos, out / "streamlines.png", rollouts=rollouts, perturbed=perturbed
+        )
+    ]
+    if policy.stable:
+        paths.append(plot_lyapunov(policy, demos, out / "lyapunov.png"))
+        paths.append(
+            plot_rollout_lyapunov(
+                policy, rollouts, dt, out / "rollout_lyapunov.png", perturbed=perturbed
+            )
+        )
+    if history:
+        paths.append(plot_loss(history, out / "loss.png"))
+    return paths
+
+
+# --- geometry --------------------------------------------------------------------------------
+
+
+def _box(points: np.ndarray, target: np.ndarray, *, scale: float) -> tuple[np.ndarray, np.ndarray]:
+    """The bounding box of ``points`` and ``target`` enlarged ``scale`` times about its centre.
+
+    A side that the data leave (nearly) flat, such as the width of a straight-line motion,
+    gets at least a fifth of the longest side, so the view is never a sliver.
+    """
+    both = np.vstack([points, target[None]])
+    low, high = both.min(axis=0), both.max(axis=0)
+    centre, half = (low + high) / 2, (high - low) / 2
+    half = np.maximum(half, 0.2 * half.max())
+    if half.max() == 0:  # every point at the target
+        half = np.ones_like(half)
+    return centre - scale * half, centre + scale * half
+
+
+def _plane(
+    demos: Demonstrations, *, include: Sequence[np.ndarray] = ()
+) -> tuple[tuple[np.ndarray, np.ndarray], np.ndarray]:
+    """A GRID x GRID grid over the view of x1, x2; other coordinates at the target's values.
+
+    Returns:
+        The axes' ticks (x1, x2), each shape (GRID,), and the grid's points, (GRID * GRID, n),
+        row-major with x2 along rows as :meth:`~matplotlib.axes.Axes.streamplot` expects.
+    """
+    target = demos.target
+    low, high = _box(demos.positions()[:, :2], target[:2], scale=1.4)
+    extra = [np.asarray(s)[:, :2] for s in include if len(s)]
+    if extra:
+        # Keep every drawn start in view, with a small margin beyond the outermost one.
+        starts = np.concatenate(extra)
+        margin = 0.05 * (high - low)
+        low = np.minimum(low, starts.min(axis=0) - margin)
+        high = np.maximum(high, starts.max(axis=0) + margin)
+    x1 = np.linspace(low[0], high[0], GRID)
+    x2 = np.linspace(low[1], high[1], GRID)
+    grid1, grid2 = np.meshgrid(x1, x2)
+    points = np.tile(target, (GRID * GRID, 1))
+    points[:, 0], points[:, 1] = grid1.ravel(), grid2.ravel()
+    return (x1, x2), points
+
+
+@torch.no_grad()
+def _lyapunov(policy: StablePolicy, points: np.ndarray) -> np.ndarray:
+    """V at user positions (N, n), in model units."""
+    param = next(policy.parameters())
+    x = torch.as_tensor(points, dtype=param.dtype, device=param.device)
+    v, _ = policy.lyapunov.value_and_grad(policy.to_model(x))
+    return v.cpu().numpy()
+
+
+def _require_stable(policy: StablePolicy) -> None:
+    if not policy.stable:
+        raise ValueError(
+            "this policy has no Lyapunov function (it was built with stable=False); "
+            "V can only be plotted for a stable policy"
+        )
+
+
+def _smooth(values: np.ndarray) -> np.ndarray:
+    """Centred rolling median over about 2 % of the run, taken in log space.
+
+    Centred, unlike a moving average, so the curve does not lag behind a steep early drop;
+    the median ignores the odd spike of a mini-batch.
+    """
+    half = max(2, values.size // 100)
+    logs = np.log(np.clip(values, np.finfo(np.float64).tiny, None))
+    padded = np.pad(logs, half, mode="edge")
+    windows = np.lib.stride_tricks.sliding_window_view(padded, 2 * half + 1)
+    return np.exp(np.median(windows, axis=-1))
+
+
+# --- drawing ---------------------------------------------------------------------------------
+
+
+def _figure(x1: np.ndarray | None = None, x2: np.ndarray | None = None):
+    """A figure with one axes; given the view's ticks, equal aspect and a size that fits it.
+
+    A fixed figure size would leave wide motions (LASA's Sine is 6:3) floating in white
+    space, so the axes box gets up to AXES_INCHES on its longer side and the figure grows
+    around it by room for the title, the labels, the colour bar and the legend.
+    """
+    if x1 is None or x2 is None:
+        fig = Figure(figsize=FIGSIZE, dpi=DPI, layout="constrained")
+        return fig, fig.add_subplot()
+    ratio = (x2[-1] - x2[0]) / (x1[-1] - x1[0])
+    width, height = (
+        (AXES_INCHES, AXES_INCHES * ratio) if ratio < 1 else (AXES_INCHES / ratio, AXES_INCHES)
+    )
+    size = (max(width, 2.5) + 1.9, max(height, 2.0) + 1.7)
+    fig = Figure(figsize=size, dpi=DPI, layout="constrained")
+    ax = fig.add_subplot()
+    ax.set_aspect("equal")
+    return fig, ax
+
+
+def _draw_demos(ax, demos: Demonstrations, *, color: str) -> None:
+    for i, demo in enumerate(demos):
+        x = demo.positions
+        ax.plot(
+            x[:, 0],
+            x[:, 1],
+            color=color,
+            linewidth=1.0,
+            alpha=0.9,
+            zorder=3,
+            label="demonstration" if i == 0 else None,
+        )
+        ax.plot(
+            x[0, 0],
+            x[0, 1],
+            "o",
+            color=color,
+            markersize=3.5,
+            zorder=3,
+            label="demo start" if i == 0 else None,
+        )
+
+
+def _draw_rollouts(
+    ax, rollouts: np.ndarray, *, color: str, style: str, label: str, starts: bool
+) -> None:
+    for i, path in enumerate(np.asarray(rollouts)):
+        ax.plot(
+            path[:, 0],
+            path[:, 1],
+            style,
+            color=color,
+            linewidth=1.3,
+            alpha=0.9,
+            zorder=4,
+            label=label if i == 0 else None,
+        )
+        if starts:
+            ax.plot(path[0, 0], path[0, 1], "o", mfc="white", mec=color, mew=1.0, ms=4, zorder=4)
+
+
+def _draw_target(ax, target: np.ndarray) -> None:
+    ax.plot(
+        target[0],
+        target[1],
+        "*",
+        color="#fab005",
+        mec="black",
+        mew=0.8,
+        markersize=15,
+        zorder=6,
+        label="target",
+    )
+
+
+def _finish(
+    ax, x1: np.ndarray, x2: np.ndarray, dim: int, title: str, *, projected: bool = False
+) -> None:
+    ax.set_xlim(x1[0], x1[-1])
+    ax.set_ylim(x2[0], x2[-1])
+    ax.set_xlabel("x1")
+    ax.set_ylabel("x2")
+    if dim > 2:
+        rest = "x3" if dim == 3 else f"x3..x{dim}"
+        title = f"{title}\nslice {rest} = target" + (", paths projected" if projected else "")
+    ax.set_title(title)
+    _despine(ax)
+
+
+def _legend(fig, ax) -> None:
+    # Below the axes, so it never hides a streamline, a demonstration or the target.
+    handles, labels = ax.get_legend_handles_labels()
+    fig.legend(
+        handles,
+        labels,
+        loc="outside lower center",
+        ncol=min(len(labels), 3),
+        frameon=False,
+        fontsize="small",
+    )
+
+
+def _despine(ax) -> None:
+    for side in ("top", "right"):
+        ax.spines[side].set_visible(False)
+
+
+def _name(demos: Demonstrations, policy: StablePolicy) -> str:
+    kind = "stable policy" if policy.stable else "unconstrained policy"
+    return f"{demos.name} — {kind}" if demos.name else kind
+
+
+def _save(fig: Figure, path: str | Path) -> Path:
+    """Writes ``fig`` as a PNG through a temporary file in the same folder, then renames it."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".png")
+    os.close(handle)
+    try:
+        fig.savefig(temporary, format="png", dpi=DPI)
+        os.replace(temporary, path)
+    except BaseException:
+        Path(temporary).unlink(missing_ok=True)
+        raise
+    finally:
+        fig.clear()
+    return path

@@ -1,0 +1,109 @@
+"""Plots: every file is a real, non-trivial PNG, written atomically, for 2-D and n-D tasks."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from snds.data import Demonstration, Demonstrations, Normalization
+from snds.plotting import (
+    _plane,
+    plot_all,
+    plot_loss,
+    plot_lyapunov,
+    plot_rollout_lyapunov,
+)
+from snds.policy import PolicyConfig, StablePolicy
+
+TINY = PolicyConfig(hidden=(16,), fourier_features=8, lyapunov_hidden=(8,))
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+def line_demos(dim: int = 2) -> Demonstrations:
+    """Two 50-sample demonstrations along straight lines to the origin, over one second."""
+    times = np.linspace(0.0, 1.0, 50)
+    starts = np.zeros((2, dim))
+    starts[0, 0], starts[1, 1] = 4.0, 3.0
+    starts[:, 2:] = 1.0  # off the x1-x2 plane in n > 2, so the slice is a real choice
+    demos = [
+        Demonstration(
+            positions=start * (1.0 - times)[:, None],
+            velocities=np.tile(-start, (times.size, 1)),
+            times=times,
+        )
+        for start in starts
+    ]
+    return Demonstrations(tuple(demos), np.zeros(dim), "lines")
+
+
+def tiny_policy(demos: Demonstrations, *, stable: bool = True) -> StablePolicy:
+    config = PolicyConfig(**{**TINY.to_dict(), "stable": stable})
+    policy = StablePolicy(dim=demos.dim, normalization=Normalization.fit(demos), config=config)
+    return policy.to(torch.float64).eval()
+
+
+def assert_png(path: Path) -> None:
+    assert path.is_file(), path
+    assert path.read_bytes()[:8] == PNG_MAGIC, f"{path} is not a PNG"
+    assert path.stat().st_size > 10_000, f"{path} is nearly empty ({path.stat().st_size} B)"
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_plot_all_writes_every_plot_of_a_stable_policy(tmp_path: Path, dim: int) -> None:
+    # GIVEN a stable policy (in 3-D, plotted in the slice x3 = target) and a loss history
+    demos = line_demos(dim)
+    policy = tiny_policy(demos)
+    history = list(np.geomspace(1.0, 1e-3, 200))
+    # WHEN every plot is written into a folder that does not exist yet
+    paths = plot_all(policy, demos, tmp_path / "plots", history=history)
+    # THEN each is a real PNG, and nothing else (no temporary file) is left in the folder
+    names = ["streamlines.png", "lyapunov.png", "rollout_lyapunov.png", "loss.png"]
+    assert [p.name for p in paths] == names
+    for path in paths:
+        assert_png(path)
+    assert sorted(p.name for p in (tmp_path / "plots").iterdir()) == sorted(names)
+
+
+def test_unconstrained_policy_gets_no_lyapunov_plots(tmp_path: Path) -> None:
+    demos = line_demos()
+    policy = tiny_policy(demos, stable=False)
+    paths = plot_all(policy, demos, tmp_path)
+    assert [p.name for p in paths] == ["streamlines.png"]
+    assert_png(paths[0])
+    with pytest.raises(ValueError, match="stable"):
+        plot_lyapunov(policy, demos, tmp_path / "lyapunov.png")
+    with pytest.raises(ValueError, match="stable"):
+        plot_rollout_lyapunov(policy, np.zeros((1, 3, 2)), 0.1, tmp_path / "v.png")
+    assert not (tmp_path / "lyapunov.png").exists()
+
+
+def test_plots_overwrite_and_return_the_path_written(tmp_path: Path) -> None:
+    target = tmp_path / "nested" / "loss.png"
+    first = plot_loss(list(np.geomspace(1.0, 1e-2, 50)), target)
+    second = plot_loss([3.0, 2.0, 1.0], str(target))
+    assert first == second == target
+    assert_png(target)
+    assert sorted(p.name for p in target.parent.iterdir()) == ["loss.png"]
+
+
+def test_slice_holds_other_coordinates_at_the_target() -> None:
+    # GIVEN a 4-D task whose target is off the origin in every coordinate
+    base = line_demos(4)
+    shift = np.array([1.0, -2.0, 3.0, -4.0])
+    demos = Demonstrations(
+        tuple(
+            Demonstration(positions=d.positions + shift, velocities=d.velocities, times=d.times)
+            for d in base
+        ),
+        base.target + shift,
+    )
+    (x1, x2), points = _plane(demos)
+    # THEN x3, x4 sit at the target, and the view contains the data and the target with room
+    assert np.all(points[:, 2:] == demos.target[2:])
+    data = demos.positions()[:, :2]
+    assert x1[0] < data[:, 0].min() and x1[-1] > data[:, 0].max()
+    assert x2[0] < data[:, 1].min() and x2[-1] > data[:, 1].max()
+    assert x1[0] < demos.target[0] < x1[-1] and x2[0] < demos.target[1] < x2[-1]
