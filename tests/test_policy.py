@@ -29,8 +29,8 @@ def test_decrease_holds_at_random_and_far_points(spiral, rectifier, scale):
     # THEN V decreases at least at the promised rate everywhere
     lhs = (grad_v * pi).sum(-1)
     slack = 1e-9 * (grad_v.norm(dim=-1) * policy.nominal(x).norm(dim=-1) + v)
-    assert (lhs <= -policy.decay(v) + slack).all()
-    assert (policy.decay(v) > 0).all()
+    assert (lhs <= -policy.decay(v, x) + slack).all()
+    assert (policy.decay(v, x) >= 0.5 * v).all() and (v > 0).all()
 
 
 def test_relaxed_mode_only_promises_non_increase(spiral):

@@ -70,6 +70,9 @@ class PolicyConfig:
         quadratic: Coefficient d of the quadratic floor of V.
         decay_rate: rho in a(x) = rho V(x), per unit of model time (0: the paper's relaxed
             mode, which only gives dV/dt <= 0 and does not rule out spurious equilibria).
+        decay_far: Extra decay rate per unit of distance beyond the demonstrations' extent:
+            a(x) = V(x) (rho + decay_far max(|x| - 1, 0)) in model coordinates. It speeds up
+            the return from far away without constraining the fit on the data (|x| <= 1).
         rectifier: r in the projection ("relu" as in the paper, or "softplus").
         stable: False gives the unconstrained policy pi = f (behavioural cloning).
     """
@@ -82,14 +85,15 @@ class PolicyConfig:
     lyapunov_activation: str = "smooth_leaky"
     quadratic: float = 0.05
     decay_rate: float = 0.5
+    decay_far: float = 2.0
     rectifier: str = "relu"
     stable: bool = True
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "hidden", tuple(self.hidden))
         object.__setattr__(self, "lyapunov_hidden", tuple(self.lyapunov_hidden))
-        if self.decay_rate < 0:
-            raise ValueError(f"decay_rate must be >= 0, got {self.decay_rate}")
+        if self.decay_rate < 0 or self.decay_far < 0:
+            raise ValueError("decay_rate and decay_far must be >= 0")
         if self.rectifier not in RECTIFIERS:
             raise ValueError(
                 f"unknown rectifier {self.rectifier!r}; choose from {list(RECTIFIERS)}"
@@ -106,7 +110,7 @@ class StablePolicy(nn.Module):
     Internally it works in model coordinates (target at 0, extent 1, top speed 1; see
     :class:`~snds.data.Normalization`): :math:`\pi` there is :func:`project` applied to the
     nominal :math:`f(x) - f(0)` (so that the target is an equilibrium) with the
-    :class:`~snds.nn.Lyapunov` function :math:`V` and decay :math:`a = \rho V`.
+    :class:`~snds.nn.Lyapunov` function :math:`V` and decay :math:`a \ge \rho V`.
 
     Arguments:
         dim: State dimension n.
@@ -154,9 +158,15 @@ class StablePolicy(nn.Module):
         out = self.nominal_net(torch.cat([flat, flat.new_zeros(1, self.dim)]))
         return (out[:-1] - out[-1]).reshape(x.shape)
 
-    def decay(self, v: Tensor) -> Tensor:
-        """The required decrease rate a = rho V, shape (*,)."""
-        return self.config.decay_rate * v
+    def decay(self, v: Tensor, x: Tensor) -> Tensor:
+        """The required decrease rate a(x) = V (rho + rho_far (|x| - 1)_+), shape (*,).
+
+        Arguments:
+            v: V at the states, shape (*,).
+            x: The states in model coordinates, shape (*, n).
+        """
+        beyond = (x.norm(dim=-1) - 1.0).clamp_min(0.0)
+        return v * (self.config.decay_rate + self.config.decay_far * beyond)
 
     def field(self, x: Tensor) -> Tensor:
         """The policy in model coordinates, (*, n) -> (*, n)."""
@@ -164,7 +174,7 @@ class StablePolicy(nn.Module):
         if not self.stable:
             return f
         v, grad_v = self.lyapunov.value_and_grad(x)
-        return project(f, grad_v, self.decay(v), self.config.rectifier)
+        return project(f, grad_v, self.decay(v, x), self.config.rectifier)
 
     def to_model(self, x: Tensor) -> Tensor:
         """User positions (*, n) to model coordinates."""

@@ -77,7 +77,7 @@ def decrease_violations(policy: StablePolicy, x: torch.Tensor, *, rtol: float = 
     value, grad = policy.lyapunov.value_and_grad(xm)
     f = policy.nominal(xm)
     pi = policy.field(xm)
-    decay = policy.decay(value)
+    decay = policy.decay(value, xm)
     lhs = (grad * pi).sum(-1)
     scale = grad.norm(dim=-1) * f.norm(dim=-1) + decay
     return int((lhs > -decay + rtol * scale).sum())

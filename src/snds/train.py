@@ -58,7 +58,7 @@ class TrainConfig:
     window_batch_size: int = 128
     grad_clip: float = 1.0
     velocity_shape: str = "mse"
-    window: int = 2
+    window: int = 0
     velocity_weight: float = 1.0
     patience: int = 0
     min_improvement: float = 1e-3

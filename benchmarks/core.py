@@ -1,0 +1,179 @@
+"""Core benchmark: the default SNDS configuration on the paper's 8 LASA motions.
+
+Trains every (motion, seed) with all 7 demonstrations and a random 0.8 / 0.2 split of the
+samples, evaluates on the test samples, and checks stability (1,000 rollouts from a box 3x
+the extent, 100,000 decrease-condition samples in a box 10x the extent). Each run is one
+process with one torch thread; ``--jobs`` runs run side by side (default: all cores).
+
+    python benchmarks/core.py                       # 8 motions x 3 seeds, table into README
+    python benchmarks/core.py --motions Sine --seeds 1 --set window=0 --tag no-window
+
+Writes ``benchmarks/results/core[-TAG].json`` and ``.csv``, and (without ``--no-readme``)
+the table between the ``core`` markers of ``benchmarks/README.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import datetime
+import json
+import os
+import platform
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+PAPER8 = ("Sine", "PShape", "Worm", "GShape", "NShape", "DoubleBendedLine", "CShape", "Angle")
+#: SNDS velocity MSE in the paper's Fig. 4 (its scale), per motion.
+PAPER_MSE = {
+    "Sine": 0.0018,
+    "PShape": 0.0016,
+    "Worm": 0.0031,
+    "GShape": 0.0024,
+    "NShape": 0.0016,
+    "DoubleBendedLine": 0.0028,
+    "CShape": 0.0014,
+    "Angle": 0.0012,
+}
+HERE = Path(__file__).resolve().parent
+
+
+def _parse_overrides(pairs: list[str]) -> dict[str, object]:
+    overrides = {}
+    for pair in pairs:
+        key, _, value = pair.partition("=")
+        overrides[key] = json.loads(value) if value[:1] in "[{0123456789-tfn" else value
+    return overrides
+
+
+def run_one(motion: str, seed: int, overrides: dict[str, object], quick: bool) -> dict:
+    """Trains and evaluates one (motion, seed) in this process; returns one result row."""
+    import torch
+
+    torch.set_num_threads(1)
+    from snds.data import Normalization, load_lasa, split_samples
+    from snds.evaluate import evaluate
+    from snds.policy import PolicyConfig, StablePolicy
+    from snds.train import TrainConfig, fit
+
+    policy_fields = {f.name for f in dataclasses.fields(PolicyConfig)}
+    policy_config = PolicyConfig(**{k: v for k, v in overrides.items() if k in policy_fields})
+    train_config = TrainConfig(
+        seed=seed, **{k: v for k, v in overrides.items() if k not in policy_fields}
+    )
+    demos = load_lasa(motion)
+    split = split_samples(demos, test_fraction=0.2, seed=seed)
+    policy = StablePolicy(
+        dim=demos.dim, normalization=Normalization.fit(demos), config=policy_config, seed=seed
+    )
+    result = fit(policy, demos, split, train_config, progress=False)
+    metrics = evaluate(
+        policy,
+        demos,
+        split,
+        seed=seed,
+        rollouts=200 if quick else 1000,
+        samples=10_000 if quick else 100_000,
+    )
+    stability = metrics.pop("stability")
+    return {
+        "motion": motion,
+        "seed": seed,
+        "train_seconds": round(result.seconds, 2),
+        "steps": result.steps,
+        "restarts": result.restarts,
+        **{k: v for k, v in metrics.items() if isinstance(v, float)},
+        "converged_fraction": stability["converged_fraction"],
+        "rollouts": stability["rollouts"],
+        "median_time_to_converge": stability["median_time_to_converge"],
+        "decrease_violations": stability["decrease_violations"],
+        "samples_checked": stability["samples_checked"],
+    }
+
+
+def summarise(rows: list[dict], motions: list[str]) -> str:
+    """A Markdown table of mean +- std per motion."""
+    import numpy as np
+
+    lines = [
+        "| motion | train s | velocity MSE (paper scale, test) | paper SNDS MSE | "
+        "DTW (paper scale) | converged | decrease violations |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for motion in motions:
+        mine = [r for r in rows if r["motion"] == motion]
+        if not mine:
+            continue
+
+        def stat(key: str, fmt: str, mine: list[dict] = mine) -> str:
+            values = np.array([r[key] for r in mine], dtype=float)
+            return f"{values.mean():{fmt}} ± {values.std():{fmt}}"
+
+        lines.append(
+            f"| {motion} | {stat('train_seconds', '.1f')} | {stat('velocity_mse_paper', '.4f')} "
+            f"| {PAPER_MSE.get(motion, float('nan')):.4f} | {stat('dtw_paper', '.3f')} "
+            f"| {min(r['converged_fraction'] for r in mine):.3f} (min) "
+            f"| {sum(r['decrease_violations'] for r in mine)} |"
+        )
+    return "\n".join(lines)
+
+
+def _write_readme_section(tag: str, body: str) -> None:
+    readme = HERE / "README.md"
+    text = readme.read_text() if readme.exists() else "# Benchmarks\n"
+    begin, end = f"<!-- {tag}:begin -->", f"<!-- {tag}:end -->"
+    block = f"{begin}\n{body}\n{end}"
+    if begin in text and end in text:
+        text = text[: text.index(begin)] + block + text[text.index(end) + len(end) :]
+    else:
+        text = text.rstrip() + "\n\n" + block + "\n"
+    tmp = readme.with_suffix(".md.tmp")
+    tmp.write_text(text)
+    os.replace(tmp, readme)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--motions", nargs="+", default=list(PAPER8))
+    parser.add_argument("--seeds", type=int, default=3)
+    parser.add_argument("--jobs", type=int, default=os.cpu_count() or 1)
+    parser.add_argument("--set", nargs="*", default=[], help="config overrides key=value")
+    parser.add_argument("--tag", default="", help="suffix of the result files")
+    parser.add_argument("--quick", action="store_true", help="smaller stability check")
+    parser.add_argument("--no-readme", action="store_true")
+    args = parser.parse_args()
+    overrides = _parse_overrides(args.set)
+    jobs = [(m, s) for m in args.motions for s in range(args.seeds)]
+    with ProcessPoolExecutor(max_workers=args.jobs) as pool:
+        futures = [pool.submit(run_one, m, s, overrides, args.quick) for m, s in jobs]
+        rows = []
+        for (motion, seed), future in zip(jobs, futures):
+            rows.append(future.result())
+            print(json.dumps(rows[-1]), flush=True)
+    name = "core" + (f"-{args.tag}" if args.tag else "")
+    out = HERE / "results"
+    out.mkdir(exist_ok=True)
+    meta = {
+        "date": datetime.date.today().isoformat(),
+        "machine": f"{platform.machine()}, {os.cpu_count()} cores, {platform.platform()}",
+        "jobs": args.jobs,
+        "overrides": overrides,
+    }
+    (out / f"{name}.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=2))
+    with open(out / f"{name}.csv", "w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    table = summarise(rows, args.motions)
+    print(table)
+    if not args.no_readme:
+        header = (
+            f"Measured {meta['date']} on {meta['machine']}; {args.jobs} runs side by side, "
+            f"one torch thread each; {args.seeds} seeds; overrides {overrides or 'none'}."
+        )
+        _write_readme_section(name, header + "\n\n" + table)
+
+
+if __name__ == "__main__":
+    main()
