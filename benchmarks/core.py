@@ -148,7 +148,7 @@ def main() -> None:
     with ProcessPoolExecutor(max_workers=args.jobs) as pool:
         futures = [pool.submit(run_one, m, s, overrides, args.quick) for m, s in jobs]
         rows = []
-        for (motion, seed), future in zip(jobs, futures):
+        for future in futures:
             rows.append(future.result())
             print(json.dumps(rows[-1]), flush=True)
     name = "core" + (f"-{args.tag}" if args.tag else "")
