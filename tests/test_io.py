@@ -79,3 +79,13 @@ def test_a_pickle_in_place_of_the_weights_is_refused_and_never_run(saved, tmp_pa
     with pytest.raises(ModelFileError):
         load_model(directory)
     assert not (tmp_path / "PWNED").exists()
+
+
+def test_written_files_get_the_usual_mode_not_mkstemp_s_private_one(saved):
+    import os
+
+    _, directory = saved
+    umask = os.umask(0)
+    os.umask(umask)
+    for path in directory.iterdir():
+        assert path.stat().st_mode & 0o777 == 0o666 & ~umask, path.name

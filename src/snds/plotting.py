@@ -11,8 +11,6 @@ with x3..xn held at the target's values; rollouts are projected onto that plane.
 
 from __future__ import annotations
 
-import os
-import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -23,6 +21,7 @@ from matplotlib import colors
 from matplotlib.figure import Figure
 
 from snds.data.demonstrations import Demonstrations
+from snds.io import atomic_write
 from snds.policy import StablePolicy
 from snds.rollout import rollout_numpy
 
@@ -516,17 +515,10 @@ def _name(demos: Demonstrations, policy: StablePolicy) -> str:
 
 
 def _save(fig: Figure, path: str | Path) -> Path:
-    """Writes ``fig`` as a PNG through a temporary file in the same folder, then renames it."""
+    """Writes ``fig`` as a PNG atomically (see :func:`snds.io.atomic_write`)."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".png")
-    os.close(handle)
     try:
-        fig.savefig(temporary, format="png", dpi=DPI)
-        os.replace(temporary, path)
-    except BaseException:
-        Path(temporary).unlink(missing_ok=True)
-        raise
+        atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=DPI))
     finally:
         fig.clear()
     return path
