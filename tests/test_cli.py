@@ -94,3 +94,23 @@ def test_messy_snake_single_demo_end_to_end(tmp_path):
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["stability"]["converged_fraction"] == 1.0
     assert metrics["stability"]["decrease_violations"] == 0
+
+
+def test_chosen_demos_and_held_out_demos(tmp_path):
+    out = tmp_path / "held_out"
+    argv = ["--quiet", "train", "--motion", "Angle", "--demos", "0,2,4", "--test-demos", "1"]
+    assert main([*argv, "--out", str(out), *FAST]) == 0
+    description = json.loads((out / "model.json").read_text())
+    assert description["data"]["demos"] == [0, 2, 4]
+    assert description["split"]["test_demos"] == [1]
+    before = json.loads((out / "metrics.json").read_text())
+    assert main(["--quiet", "evaluate", str(out), "--rollouts", "100", "--samples", "5000"]) == 0
+    after = json.loads((out / "metrics.json").read_text())
+    assert after["velocity_mse"] == pytest.approx(before["velocity_mse"], rel=1e-9)
+
+
+def test_malformed_demo_list_is_a_usage_error(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["train", "--motion", "Sine", "--demos", "1,x"])
+    assert exit_info.value.code == 2
+    assert "indices" in capsys.readouterr().err

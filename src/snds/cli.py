@@ -18,6 +18,7 @@ from snds.data import (
     load_demonstrations,
     load_lasa,
     no_split,
+    split_demos,
     split_samples,
 )
 from snds.errors import SNDSError
@@ -27,12 +28,28 @@ from snds.policy import PolicyConfig, StablePolicy
 from snds.train import TrainConfig, fit
 
 
+def _index_list(text: str) -> list[int]:
+    try:
+        return [int(part) for part in text.split(",") if part.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected comma-separated indices, got {text!r}"
+        ) from None
+
+
+def _demo_choice(text: str) -> int | list[int]:
+    return _index_list(text) if "," in text else _index_list(text)[0]
+
+
 def _data_arguments(parser: argparse.ArgumentParser, *, required: bool) -> None:
     source = parser.add_mutually_exclusive_group(required=required)
     source.add_argument("--motion", help="a LASA handwriting motion, e.g. Sine")
     source.add_argument("--data", type=Path, help="demonstrations: .mat, .csv or .npz")
     parser.add_argument(
-        "--demos", type=int, default=None, help="train on the first K demonstrations"
+        "--demos",
+        type=_demo_choice,
+        default=None,
+        help="K: the first K demonstrations; I,J,...: these demonstrations (0-based)",
     )
 
 
@@ -65,6 +82,12 @@ def _build_parser() -> argparse.ArgumentParser:
     train.add_argument("--out", type=Path, default=None, help="model directory")
     train.add_argument("--plot", action="store_true", help="also write the plots")
     train.add_argument("--test-fraction", type=float, default=0.2, help="held-out samples")
+    train.add_argument(
+        "--test-demos",
+        type=_index_list,
+        default=None,
+        help="hold out these whole demonstrations (I,J,...) instead of random samples",
+    )
     train.add_argument("--steps", type=int, default=TrainConfig.steps, help="optimiser steps")
     train.add_argument("--window", type=int, default=TrainConfig.window, help="Euler window Nw")
     train.add_argument(
@@ -96,9 +119,23 @@ def _build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _load_data(motion: str | None, data: Path | None, demos: int | None) -> Demonstrations:
+def _load_data(
+    motion: str | None, data: Path | None, demos: int | list[int] | None
+) -> Demonstrations:
     loaded = load_lasa(motion) if motion is not None else load_demonstrations(data)
-    return loaded if demos is None else loaded.first(demos)
+    if demos is None:
+        return loaded
+    return loaded.first(demos) if isinstance(demos, int) else loaded.select(demos)
+
+
+def _make_split(demos: Demonstrations, record: dict) -> Split:
+    """The split described by a ``split`` record of model.json."""
+    if record.get("test_demos"):
+        return split_demos(demos, test_demos=record["test_demos"])
+    fraction = float(record.get("test_fraction", 0.0))
+    if fraction <= 0:
+        return no_split(demos)
+    return split_samples(demos, test_fraction=fraction, seed=int(record.get("seed", 0)))
 
 
 def _source(args: argparse.Namespace) -> dict:
@@ -110,11 +147,12 @@ def _source(args: argparse.Namespace) -> dict:
 def _train(args: argparse.Namespace) -> int:
     demos = _load_data(args.motion, args.data, args.demos)
     out = args.out or Path("runs") / (demos.name or Path(str(args.data)).stem)
-    split = (
-        split_samples(demos, test_fraction=args.test_fraction, seed=args.seed)
-        if args.test_fraction > 0
-        else no_split(demos)
-    )
+    split_record = {
+        "test_fraction": args.test_fraction,
+        "seed": args.seed,
+        "test_demos": args.test_demos,
+    }
+    split = _make_split(demos, split_record)
     policy_config = PolicyConfig(decay_rate=args.decay_rate, stable=not args.unconstrained)
     train_config = TrainConfig(
         steps=args.steps,
@@ -133,7 +171,7 @@ def _train(args: argparse.Namespace) -> int:
     policy.to("cpu")
     record = {
         "data": _source(args),
-        "split": {"test_fraction": args.test_fraction, "seed": args.seed},
+        "split": split_record,
         "train": train_config.to_dict(),
         "train_result": {k: v for k, v in dataclasses.asdict(result).items() if k != "history"},
     }
@@ -149,14 +187,6 @@ def _train(args: argparse.Namespace) -> int:
     if not args.quiet:
         _summarise(out, metrics)
     return 0
-
-
-def _split_from(description: dict, demos: Demonstrations) -> Split:
-    split = description.get("split", {})
-    fraction = float(split.get("test_fraction", 0.0))
-    if fraction <= 0:
-        return no_split(demos)
-    return split_samples(demos, test_fraction=fraction, seed=int(split.get("seed", 0)))
 
 
 def _model_and_data(args: argparse.Namespace) -> tuple[StablePolicy, dict, Demonstrations]:
@@ -183,7 +213,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     metrics = evaluate(
         policy,
         demos,
-        _split_from(description, demos),
+        _make_split(demos, description.get("split", {})),
         seed=args.seed,
         rollouts=args.rollouts,
         samples=args.samples,

@@ -150,6 +150,6 @@ def rollout_numpy(
     Returns:
         The rollouts, shape (B, steps + 1, n).
     """
-    x = torch.as_tensor(np.asarray(x0, dtype=np.float64), dtype=dtype)
+    x = torch.tensor(np.asarray(x0, dtype=np.float64), dtype=dtype)
     states = rollout(policy, x, dt=dt, steps=steps, method=method)
     return states.transpose(0, 1).cpu().numpy()
