@@ -46,3 +46,34 @@ def test_a_field_that_stops_short_is_reported_as_not_converged():
     report = check_stability(Stuck(), demos, rollouts=50, samples=0, seed=0)
     assert report.converged_fraction < 0.05
     assert report.decrease_violations == 0 and report.samples_checked == 0
+
+
+def test_largest_safe_step_is_exact_for_a_quadratic():
+    # V = d |x|^2 + (a linear ICNN part cancels in the Bregman form) and pi = -k x: a step h
+    # decreases V iff |1 - k h| < 1, i.e. h < 2 / k. Build that with a zero nominal field.
+    from snds.data import Normalization
+    from snds.policy import PolicyConfig, StablePolicy
+    from snds.stability import largest_safe_step
+
+    config = PolicyConfig(
+        hidden=(4,), fourier_features=0, lyapunov_hidden=(4,), decay_rate=1.0, decay_far=0.0
+    )
+    norm = Normalization(center=np.zeros(2), length=1.0, time=1.0)
+    policy = StablePolicy(dim=2, normalization=norm, config=config).double()
+    with torch.no_grad():
+        for p in policy.nominal_net.parameters():
+            p.zero_()
+        for skip in policy.lyapunov.icnn.skips:
+            skip.weight.zero_()  # g constant: V = d |x|^2 exactly
+    # pi = -grad V * a / |grad V|^2 = -(2 d x) d |x|^2 / (4 d^2 |x|^2) = -x / 2: k = 1/2
+    x = torch.randn(1000, 2, dtype=torch.float64)
+    torch.testing.assert_close(policy(x), -0.5 * x)
+    h = largest_safe_step(policy, x, upper=100.0)
+    assert abs(h - 4.0) < 1e-6
+
+
+def test_report_includes_a_safe_step_above_the_rollout_step(spiral):
+    policy = make_policy(spiral, dataclasses.replace(SMALL, decay_rate=1.0), seed=3)
+    report = check_stability(policy, spiral, rollouts=50, samples=5000, seed=0)
+    assert report.largest_safe_dt > 0
+    assert report.converged_fraction == 1.0

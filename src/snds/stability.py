@@ -31,6 +31,8 @@ class StabilityReport:
         samples_checked: States at which the decrease condition was checked (0 for a policy
             without a Lyapunov function).
         decrease_violations: States where grad V . pi > -a(x) beyond rounding error.
+        largest_safe_dt: Largest Euler step (s) that decreases V at every sampled state (NaN
+            for a policy without a Lyapunov function); compare with ``dt``.
         box: Half-width of the box of random starts, in user units.
         horizon: Duration of each rollout, in seconds.
         dt: Time step of the rollouts, in seconds.
@@ -43,6 +45,7 @@ class StabilityReport:
     median_time_to_converge: float
     samples_checked: int
     decrease_violations: int
+    largest_safe_dt: float
     box: float
     horizon: float
     dt: float
@@ -81,6 +84,46 @@ def decrease_violations(policy: StablePolicy, x: torch.Tensor, *, rtol: float = 
     lhs = (grad * pi).sum(-1)
     scale = grad.norm(dim=-1) * f.norm(dim=-1) + decay
     return int((lhs > -decay + rtol * scale).sum())
+
+
+@torch.no_grad()
+def largest_safe_step(
+    policy: StablePolicy, x: torch.Tensor, *, upper: float, iterations: int = 40
+) -> float:
+    r"""The largest Euler step h with :math:`V(x + h \pi(x)) < V(x)` at every given state.
+
+    Along a descent direction of a convex V, :math:`h \mapsto V(x + h \pi(x))` is convex and
+    starts decreasing, so the steps that decrease V form an interval :math:`(0, h^*(x))`; the
+    largest step safe at every state is :math:`\min_x h^*(x)`, found by bisection (in log
+    scale) on one shared h.
+
+    Arguments:
+        policy: A stable policy, in the dtype of ``x``.
+        x: States in user units, shape (B, n); the target itself is skipped.
+        upper: The largest step tried, in seconds.
+        iterations: Bisection steps.
+
+    Returns:
+        The step in seconds (``upper`` if every state is safe at ``upper``; 0 if none is).
+    """
+    xm = policy.to_model(x)
+    xm = xm[xm.norm(dim=-1) > 0]
+    value = policy.lyapunov(xm)
+    velocity = policy.field(xm)
+
+    def safe(h: float) -> bool:
+        step = h / policy.time
+        return bool((policy.lyapunov(xm + step * velocity) < value).all())
+
+    if safe(upper):
+        return upper
+    low, high = upper * 1e-12, upper
+    if not safe(low):
+        return 0.0
+    for _ in range(iterations):
+        middle = (low * high) ** 0.5
+        low, high = (middle, high) if safe(middle) else (low, middle)
+    return low
 
 
 @torch.no_grad()
@@ -134,12 +177,14 @@ def check_stability(
     )
     final, arrived = arrivals.final_distance, arrivals.arrival_step
     times = arrived[arrived >= 0].double() * dt
-    violations, checked = 0, 0
+    violations, checked, safe_dt = 0, 0, float("nan")
     if policy.stable and samples > 0:
         points = _uniform_box(target, sample_box_factor * extent, samples, rng)
+        safe_dt = 10.0 * demos.max_duration()
         for begin in range(0, samples, chunk):
             batch = torch.as_tensor(points[begin : begin + chunk])
             violations += decrease_violations(policy, batch)
+            safe_dt = min(safe_dt, largest_safe_step(policy, batch, upper=safe_dt))
         checked = samples
     finite = torch.isfinite(final)
     return StabilityReport(
@@ -149,6 +194,7 @@ def check_stability(
         median_time_to_converge=float(times.median()) if len(times) else float("nan"),
         samples_checked=checked,
         decrease_violations=violations,
+        largest_safe_dt=safe_dt,
         box=box_factor * extent,
         horizon=horizon,
         dt=dt,
