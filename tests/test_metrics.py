@@ -1,4 +1,4 @@
-"""Metrics against hand-computed values, and the properties any DTW must have."""
+"""Metrics against hand-computed values, and the properties any DTW, Fréchet or area must have."""
 
 from __future__ import annotations
 
@@ -11,13 +11,16 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from snds import metrics
+from snds.errors import DataError
 from snds.metrics import (
     dtw,
     dtw_paper,
     dtw_sum,
     final_distance,
+    frechet,
     mean_dtw,
     paper_scale,
+    swept_error_area,
     velocity_mse,
     velocity_mse_paper,
 )
@@ -169,6 +172,191 @@ def test_dtw_is_at_most_the_diagonal_path(pair):
     assert dtw(a, b) <= diagonal * (1 + 1e-12) + 1e-9
 
 
+# --- discrete Fréchet distance -----------------------------------------------------------
+
+
+def reference_frechet(a: np.ndarray, b: np.ndarray) -> float:
+    """Eiter & Mannila's recursion cell by cell, written independently of the vectorised one."""
+    gap = np.linalg.norm(a[:, None, :] - b[None, :, :], axis=-1)
+    acc = np.full((len(a) + 1, len(b) + 1), np.inf)
+    acc[0, 0] = 0.0
+    for i in range(1, len(a) + 1):
+        for j in range(1, len(b) + 1):
+            best = min(acc[i - 1, j], acc[i, j - 1], acc[i - 1, j - 1])
+            acc[i, j] = max(gap[i - 1, j - 1], best)
+    return float(acc[-1, -1])
+
+
+def test_frechet_hand_example():
+    # a = (0, 1, 2), b = (0, 2). Gaps |a_i - b_j|:
+    #         b=0  b=2
+    #   a=0    0    2
+    #   a=1    1    1
+    #   a=2    2    0
+    # c[i, j] = max(gap[i, j], min(c[i-1, j], c[i, j-1], c[i-1, j-1])):
+    #   c[0, 0] = 0, c[0, 1] = max(2, 0) = 2, c[1, 0] = max(1, 0) = 1,
+    #   c[1, 1] = max(1, min(2, 1, 0)) = 1, c[2, 0] = max(2, 1) = 2,
+    #   c[2, 1] = max(0, min(c[1, 1], c[2, 0], c[1, 0])) = max(0, min(1, 2, 1)) = 1.
+    # So F = 1: a_1 = 1 must be paired with b_0 = 0 or b_1 = 2, one unit away either way.
+    assert frechet(A_SHORT, B_SHORT) == 1.0
+    assert frechet(B_SHORT, A_SHORT) == 1.0
+    # a = (0, 1, 1, 0) against b = (0, 0): every a_i meets a zero, so F = max |a_i| = 1,
+    # where DTW adds the gaps up (sqrt(2), see above).
+    assert frechet(A_BUMP, B_BUMP) == 1.0
+
+
+def test_frechet_against_a_single_point_is_the_largest_distance():
+    # With one sample in b the only path pairs every a_i with b_0.
+    a = np.array([[3.0, 4.0], [0.0, 1.0], [0.0, 0.0]])
+    assert frechet(a, np.zeros((1, 2))) == 5.0
+    assert frechet(np.zeros((1, 2)), a) == 5.0
+
+
+def test_frechet_ignores_repeated_samples_of_the_same_path():
+    rng = np.random.default_rng(6)
+    a = rng.normal(size=(30, 3))
+    slow = np.repeat(a, rng.integers(1, 5, size=len(a)), axis=0)
+    assert frechet(a, a) == 0.0
+    assert frechet(slow, a) == 0.0
+    assert frechet(a, slow) == 0.0
+
+
+@settings(max_examples=300, deadline=None)
+@given(pairs)
+def test_frechet_is_the_min_max_over_paths(pair):
+    a, b = pair
+    f = frechet(a, b)
+    assert f == reference_frechet(a, b)
+    assert f == frechet(b, a)
+    assert frechet(a, a) == 0.0
+    # Every path starts at (0, 0) and ends at (T_a - 1, T_b - 1).
+    assert f >= max(np.linalg.norm(a[0] - b[0]), np.linalg.norm(a[-1] - b[-1]))
+    # Every sample of either sequence is on the path, paired with some sample of the other
+    # no farther than f: f is at least the discrete Hausdorff distance.
+    gap = np.linalg.norm(a[:, None, :] - b[None, :, :], axis=-1)
+    assert f >= max(gap.min(axis=1).max(), gap.min(axis=0).max())
+    # On DTW's optimal path, the largest gap is at most the root of the sum of squared gaps.
+    assert f <= dtw(a, b) * (1 + 1e-12) + 1e-9
+
+
+@settings(max_examples=200, deadline=None)
+@given(equal_length_pairs)
+def test_frechet_is_at_most_the_diagonal_path(pair):
+    a, b = pair
+    assert frechet(a, b) <= np.linalg.norm(a - b, axis=-1).max()
+
+
+def test_frechet_of_long_unequal_sequences_matches_the_reference():
+    # Speed is measured by benchmarks, not here; this checks the anti-diagonal sweep on long,
+    # unequal lengths, where an off-by-one in the diagonal bounds would show.
+    rng = np.random.default_rng(7)
+    a, b = rng.normal(size=(300, 2)).cumsum(0), rng.normal(size=(170, 2)).cumsum(0)
+    assert frechet(a, b) == reference_frechet(a, b)
+
+
+# --- swept error area ---------------------------------------------------------------------
+
+
+def even_odd_area(quad: np.ndarray, cells: int = 600) -> tuple[float, float]:
+    """Area inside a quadrilateral by counting grid cell centres, and the error bound.
+
+    A quadrilateral winds at most once around any point, so the even-odd rule finds the
+    region it encloses, bow-tie lobes included. The count is off by at most the cells the
+    boundary crosses, about perimeter / h cells of area h^2.
+    """
+    low, high = quad.min(0), quad.max(0)
+    h = float((high - low).max()) / cells
+    xs = np.arange(low[0] + h / 2, high[0], h)
+    ys = np.arange(low[1] + h / 2, high[1], h)
+    x, y = np.meshgrid(xs, ys)
+    inside = np.zeros_like(x, dtype=bool)
+    for p, q in zip(quad, np.roll(quad, -1, axis=0)):
+        # The ray from (x, y) towards +x crosses pq if pq straddles height y right of x.
+        straddles = (p[1] > y) != (q[1] > y)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            x_cross = p[0] + (y - p[1]) * (q[0] - p[0]) / (q[1] - p[1])
+        inside ^= straddles & (x < x_cross)
+    perimeter = float(np.linalg.norm(quad - np.roll(quad, -1, axis=0), axis=1).sum())
+    return float(inside.sum()) * h * h, 2 * perimeter * h
+
+
+def _quad_sea(p0, p1, p2, p3) -> float:
+    """SEA of one quadrilateral (r_0, r_1, d_1, d_0) = (p0, p1, p2, p3)."""
+    return swept_error_area(np.array([p0, p1]), np.array([p3, p2]))
+
+
+def test_swept_area_between_parallel_segments():
+    # r from (0, 0) to (2, 0), d from (0, 1) to (2, 1), 3 samples each: two unit squares.
+    demo = np.array([[0.0, 1.0], [1.0, 1.0], [2.0, 1.0]])
+    rep = np.array([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0]])
+    assert swept_error_area(rep, demo) == 2.0
+    assert swept_error_area(demo, rep) == 2.0
+    # The reproduction is resampled onto the demonstration's 3 samples, uniform in index:
+    # from 2 or 5 evenly spaced samples of the same segment it becomes rep exactly.
+    assert swept_error_area(rep[[0, 2]], demo) == 2.0
+    assert swept_error_area(np.linspace(rep[0], rep[-1], 5), demo) == 2.0
+    # Against a demonstration of length 3 in 4 samples, the reproduction's samples land at
+    # x = 0, 2/3, 4/3, 2: together the quadrilaterals tile the trapezoid with parallel sides 2
+    # and 3 at distance 1, of area (2 + 3) / 2.
+    assert swept_error_area(rep, np.linspace([0.0, 1.0], [3.0, 1.0], 4)) == pytest.approx(2.5)
+
+
+def test_swept_area_of_identical_paths_is_zero():
+    rng = np.random.default_rng(8)
+    path = rng.normal(size=(25, 2))
+    assert swept_error_area(path, path) == 0.0
+    line = np.linspace([0.0, 0.0], [3.0, -1.0], 7)
+    assert swept_error_area(line[[0, -1]], line) == pytest.approx(0.0, abs=1e-15)
+    # One demonstration sample encloses nothing.
+    assert swept_error_area(path, path[:1] + 1.0) == 0.0
+
+
+def test_swept_area_of_crossing_paths_counts_both_lobes():
+    # r from (0, 0) to (1, 1) and d from (0, 1) to (1, 0) cross at (1/2, 1/2): the bow-tie
+    # (0,0) (1,1) (1,0) (0,1) has two lobes of base 1 and height 1/2, 1/4 each. The shoelace
+    # formula would give 1/4 - 1/4 = 0, the triangle split |(0,0)(1,1)(0,1)| +
+    # |(1,1)(1,0)(0,1)| = 1/2 + 1/2 = 1.
+    assert _quad_sea([0, 0], [1, 1], [1, 0], [0, 1]) == 0.5
+    # Same when the rungs r_0 d_0 and r_1 d_1 cross instead: (0,0) (1,0) (0,1) (1,1).
+    assert _quad_sea([0, 0], [1, 0], [0, 1], [1, 1]) == 0.5
+
+
+def test_swept_area_of_a_concave_quadrilateral():
+    # (1, 1/2) (0, 0) (2, 0) (1, 1) is the triangle (0,0) (2,0) (1,1) of area 1 with the notch
+    # (0,0) (1,1/2) (1,1) of area |(1, 1/2) x (1, 1)| / 2 = 1/4 cut out: 3/4. The triangle
+    # split |(1,1/2)(0,0)(1,1)| + |(0,0)(2,0)(1,1)| = 1/4 + 1 would count the notch twice.
+    assert _quad_sea([1, 0.5], [0, 0], [2, 0], [1, 1]) == 0.75
+
+
+def test_swept_area_matches_a_grid_count_on_random_quadrilaterals():
+    # Random quadrilaterals are convex, concave and crossed in comparable numbers.
+    rng = np.random.default_rng(9)
+    for quad in rng.normal(size=(40, 4, 2)):
+        area, tolerance = even_odd_area(quad)
+        assert _quad_sea(*quad) == pytest.approx(area, abs=tolerance)
+
+
+plane_pairs = st.integers(1, 10).flatmap(lambda t: _pair(2, t, t))
+
+
+@settings(max_examples=200, deadline=None)
+@given(plane_pairs, st.floats(-math.pi, math.pi), st.floats(0.1, 10.0))
+def test_swept_area_is_a_euclidean_area(pair, angle, scale):
+    rep, demo = pair
+    sea = swept_error_area(rep, demo)
+    assert sea >= 0.0
+    # The same quadrilaterals in reverse vertex order.
+    assert swept_error_area(demo, rep) == pytest.approx(sea, rel=1e-9, abs=1e-6)
+    # Unchanged by a rigid motion, multiplied by scale^2 under a scaling.
+    rotation = np.array([[math.cos(angle), -math.sin(angle)], [math.sin(angle), math.cos(angle)]])
+    shift = np.array([3.0, -7.0])
+    moved = swept_error_area(rep @ rotation.T + shift, demo @ rotation.T + shift)
+    assert moved == pytest.approx(sea, rel=1e-6, abs=1e-3)
+    assert swept_error_area(scale * rep, scale * demo) == pytest.approx(
+        scale**2 * sea, rel=1e-6, abs=1e-3
+    )
+
+
 # --- scales, final distance, mean DTW -----------------------------------------------------
 
 
@@ -204,6 +392,13 @@ def test_mean_dtw_averages_pairs_and_divides_by_the_scale():
         (dtw, (np.zeros((0, 2)), np.zeros((3, 2)))),
         (dtw, (np.zeros(3), np.zeros(3))),
         (dtw_sum, (np.zeros((3, 1)), np.zeros((3, 2)))),
+        (frechet, (np.zeros((3, 1)), np.zeros((3, 2)))),
+        (frechet, (np.zeros((0, 2)), np.zeros((3, 2)))),
+        (frechet, (np.zeros(3), np.zeros(3))),
+        (swept_error_area, (np.zeros((3, 3)), np.zeros((3, 3)))),
+        (swept_error_area, (np.zeros((3, 2)), np.zeros((3, 1)))),
+        (swept_error_area, (np.zeros(3), np.zeros(3))),
+        (swept_error_area, (np.zeros((0, 2)), np.zeros((3, 2)))),
         (dtw_paper, (np.zeros((3, 2)), np.zeros((3, 2)), 0.0)),
         (velocity_mse_paper, (np.zeros((3, 2)), np.zeros((3, 2)), -1.0)),
         (paper_scale, (np.zeros((0, 2)), np.zeros((3, 2)))),
@@ -214,6 +409,11 @@ def test_mean_dtw_averages_pairs_and_divides_by_the_scale():
         (mean_dtw, ([np.zeros((3, 2))], [np.zeros((3, 2))], float("nan"))),
     ],
 )
-def test_bad_shapes_and_scales_raise_value_error(call, args):
-    with pytest.raises(ValueError):
+def test_bad_shapes_and_scales_raise_data_error(call, args):
+    with pytest.raises(DataError):
         call(*args)
+
+
+def test_swept_area_names_the_planar_requirement():
+    with pytest.raises(DataError, match=r"planar paths of shape \(T, 2\)"):
+        swept_error_area(np.zeros((3, 3)), np.zeros((3, 3)))
