@@ -116,6 +116,22 @@ def _build_parser() -> argparse.ArgumentParser:
     _data_arguments(plot, required=False)
     plot.add_argument("--out", type=Path, default=None, help="folder of the PNGs")
     plot.set_defaults(run=_plot)
+
+    bench = commands.add_parser(
+        "benchmark", help="train and evaluate methods x motions x seeds (resumable)"
+    )
+    bench.add_argument("--methods", default="snds,bc", help="comma-separated, e.g. snds,bc")
+    bench.add_argument(
+        "--motions", default="paper8", help="LASA names and/or groups: paper8, multi, all"
+    )
+    bench.add_argument("--demos", type=int, default=None, help="the first K demonstrations")
+    bench.add_argument("--seeds", type=int, default=3, help="seeds 0 .. N-1")
+    bench.add_argument("--jobs", type=int, default=None, help="local processes (default: cores)")
+    bench.add_argument("--scheduler", default=None, help="Dask scheduler, e.g. tcp://host:8786")
+    bench.add_argument("--out", type=Path, default=Path("runs/benchmark"), help="results folder")
+    bench.add_argument("--steps", type=int, default=None, help="optimiser steps per run")
+    bench.add_argument("--quick", action="store_true", help="smaller stability check")
+    bench.set_defaults(run=_benchmark)
     return parser
 
 
@@ -235,6 +251,30 @@ def _plot(args: argparse.Namespace) -> int:
     if not args.quiet:
         for path in paths:
             print(path)
+    return 0
+
+
+def _benchmark(args: argparse.Namespace) -> int:
+    from snds import benchmark
+
+    tasks = benchmark.make_tasks(
+        benchmark.resolve_motions(args.motions),
+        benchmark.resolve_methods(args.methods),
+        seeds=args.seeds,
+        demos=args.demos,
+    )
+    rows = benchmark.run_sweep(
+        tasks,
+        out=args.out,
+        jobs=args.jobs,
+        scheduler=args.scheduler,
+        steps=args.steps,
+        quick=args.quick,
+        progress=not args.quiet,
+    )
+    benchmark.plot_benchmark(rows, args.out)
+    if not args.quiet:
+        print((args.out / "summary.md").read_text(), end="")
     return 0
 
 

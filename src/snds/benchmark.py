@@ -1,0 +1,523 @@
+"""Benchmark sweeps: methods x motions x seeds, resumable, on local cores or a Dask cluster.
+
+A sweep is a list of :class:`Task`. Each task trains and evaluates one policy in one process
+with one torch thread (:func:`run_task`) and gives one flat row. :func:`run_sweep` appends
+every finished row to ``results.jsonl`` at once (flushed and fsynced), so an interrupted
+sweep loses at most the tasks that were running; rerunning it into the same folder skips
+the tasks already there. At the end it writes ``results.csv`` and ``summary.md``, and
+:func:`plot_benchmark` draws the figures.
+
+    rows = run_sweep(make_tasks(["Sine"], ["snds", "bc"], seeds=3), out=Path("runs/b"))
+    plot_benchmark(rows, Path("runs/b"))
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import resource
+import sys
+import time
+from collections.abc import Iterable, Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from snds.data import LASA_NAMES, Normalization, load_lasa, split_samples
+from snds.errors import DataError, SNDSError
+from snds.io import atomic_write
+from snds.methods import METHODS, get_method
+
+#: Named groups of LASA motions; ``paper8`` are the eight of the paper's Fig. 4.
+MOTION_GROUPS: dict[str, tuple[str, ...]] = {
+    "paper8": (
+        "Sine",
+        "PShape",
+        "Worm",
+        "GShape",
+        "NShape",
+        "DoubleBendedLine",
+        "CShape",
+        "Angle",
+    ),
+    "multi": ("Multi_Models_1", "Multi_Models_2", "Multi_Models_3", "Multi_Models_4"),
+    "all": LASA_NAMES,
+}
+
+#: The columns of a result row, in the order of ``results.csv``.
+ROW_FIELDS: tuple[str, ...] = (
+    "motion",
+    "method",
+    "seed",
+    "demos",
+    "train_seconds",
+    "velocity_mse",
+    "velocity_mse_paper",
+    "dtw",
+    "dtw_paper",
+    "final_distance",
+    "converged_fraction",
+    "decrease_violations",
+    "samples_checked",
+    "median_time_to_converge",
+    "peak_memory_mb",
+)
+
+#: The sweep settings that change results; a folder holds results of one setting only.
+SETTINGS_FILE = "sweep.json"
+RESULTS_FILE = "results.jsonl"
+
+
+def _names(spec: str) -> list[str]:
+    return [part.strip() for part in spec.split(",") if part.strip()]
+
+
+def resolve_motions(spec: str) -> list[str]:
+    """Motion names from comma-separated LASA names and/or :data:`MOTION_GROUPS` keys.
+
+    Case is ignored; duplicates are dropped, the first occurrence keeps its place.
+
+    Raises:
+        DataError: For an unknown name (the message names it).
+    """
+    by_lower = {name.lower(): name for name in LASA_NAMES}
+    motions: list[str] = []
+    for part in _names(spec):
+        if part.lower() in MOTION_GROUPS:
+            found = MOTION_GROUPS[part.lower()]
+        elif part.lower() in by_lower:
+            found = (by_lower[part.lower()],)
+        else:
+            raise DataError(
+                f"unknown motion or group {part!r}; groups: {', '.join(MOTION_GROUPS)}; "
+                f"motions: {', '.join(LASA_NAMES)}"
+            )
+        motions.extend(m for m in found if m not in motions)
+    if not motions:
+        raise DataError(f"no motions in {spec!r}")
+    return motions
+
+
+def resolve_methods(spec: str) -> list[str]:
+    """Method names from a comma-separated list of :data:`~snds.methods.METHODS` keys.
+
+    Raises:
+        SNDSError: For an unknown name (the message names it).
+    """
+    methods: list[str] = []
+    for part in _names(spec):
+        name = get_method(part).name
+        if name not in methods:
+            methods.append(name)
+    if not methods:
+        raise SNDSError(f"no methods in {spec!r}; choose from {', '.join(METHODS)}")
+    return methods
+
+
+@dataclass(frozen=True)
+class Task:
+    """One run of a sweep: a method trained on a motion with a seed.
+
+    Attributes:
+        motion: A LASA motion name.
+        method: A key of :data:`~snds.methods.METHODS`.
+        seed: Seed of the weights, the mini-batches, the split and the stability check.
+        demos: Train on the first this many demonstrations (None: all 7).
+    """
+
+    motion: str
+    method: str
+    seed: int
+    demos: int | None = None
+
+    @property
+    def key(self) -> str:
+        """A stable identifier, the same in every process and run (resume matches on it)."""
+        demos = "all" if self.demos is None else str(self.demos)
+        return f"{self.motion}/{self.method}/seed={self.seed}/demos={demos}"
+
+    @classmethod
+    def from_row(cls, row: dict) -> Task:
+        """The task a result row came from."""
+        demos = row.get("demos")
+        return cls(
+            row["motion"], row["method"], int(row["seed"]), None if demos is None else int(demos)
+        )
+
+
+def make_tasks(
+    motions: Sequence[str], methods: Sequence[str], *, seeds: int, demos: int | None = None
+) -> list[Task]:
+    """Every (motion, method, seed) with seeds 0 .. seeds-1, motion-major."""
+    if seeds < 1:
+        raise SNDSError(f"seeds must be >= 1, got {seeds}")
+    return [
+        Task(motion, method, seed, demos)
+        for motion in motions
+        for method in methods
+        for seed in range(seeds)
+    ]
+
+
+def _peak_rss_mb() -> float:
+    # ru_maxrss is in KiB on Linux and in bytes on macOS.
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return peak / (2**20 if sys.platform == "darwin" else 2**10)
+
+
+def run_task(task: Task, *, steps: int | None = None, quick: bool = False) -> dict:
+    """Trains and evaluates one task in this process with one torch thread.
+
+    The paper's protocol: a random 0.8 / 0.2 split of the samples (seeded by the task's
+    seed), the default :class:`~snds.train.TrainConfig`, :func:`snds.evaluate.evaluate` on the
+    test samples.
+
+    ``peak_memory_mb`` is how much the process's peak resident memory (``ru_maxrss``) grew
+    during the task. It costs nothing, unlike tracemalloc, which slows training several
+    times, and it sees torch's native allocations, which tracemalloc does not. It is exact
+    for the first task of a fresh worker; a later task in the same worker reports only what
+    it added above the earlier peak (often 0), so compare it across runs of fresh workers.
+
+    Arguments:
+        task: The run.
+        steps: Optimiser steps instead of the default (for tests and smoke runs).
+        quick: A smaller stability check (100 rollouts, 5,000 samples).
+
+    Returns:
+        One flat row with the keys :data:`ROW_FIELDS`.
+    """
+    import torch
+
+    from snds.evaluate import evaluate
+    from snds.policy import StablePolicy
+    from snds.train import TrainConfig, fit
+
+    method = get_method(task.method)
+    threads = torch.get_num_threads()
+    # One thread per run: the networks are small, and runs side by side fill the cores.
+    torch.set_num_threads(1)
+    try:
+        rss_before = _peak_rss_mb()
+        demos = load_lasa(task.motion)
+        if task.demos is not None:
+            demos = demos.first(task.demos)
+        split = split_samples(demos, test_fraction=0.2, seed=task.seed)
+        config = (
+            TrainConfig(seed=task.seed)
+            if steps is None
+            else TrainConfig(seed=task.seed, steps=steps)
+        )
+        policy = StablePolicy(
+            dim=demos.dim,
+            normalization=Normalization.fit(demos),
+            config=method.policy_config,
+            seed=task.seed,
+        )
+        result = fit(policy, demos, split, config, progress=False)
+        metrics = evaluate(
+            policy,
+            demos,
+            split,
+            seed=task.seed,
+            rollouts=100 if quick else 1000,
+            samples=5000 if quick else 100_000,
+        )
+        peak = _peak_rss_mb() - rss_before
+    finally:
+        torch.set_num_threads(threads)
+    stability = metrics["stability"]
+    return {
+        "motion": task.motion,
+        "method": task.method,
+        "seed": task.seed,
+        "demos": task.demos,
+        "train_seconds": result.seconds,
+        **{k: float(metrics[k]) for k in ROW_FIELDS if k in metrics},
+        **{k: stability[k] for k in ROW_FIELDS if k in stability},
+        "peak_memory_mb": peak,
+    }
+
+
+# ---------------------------------------------------------------------------------------------
+# The results folder: append-only JSON lines, then a CSV and a summary.
+
+
+def _read_results(path: Path) -> dict[str, dict]:
+    """Rows of ``results.jsonl`` by task key; drops a torn last line left by a kill."""
+    if not path.is_file():
+        return {}
+    rows: dict[str, dict] = {}
+    good: list[str] = []
+    text = path.read_text()
+    for line in text.splitlines():
+        try:
+            row = json.loads(line)
+            rows[Task.from_row(row).key] = row
+            good.append(line)
+        except (json.JSONDecodeError, KeyError, TypeError, ValueError):
+            continue
+    if text and (not text.endswith("\n") or len(good) != len(text.splitlines())):
+        # Appending after a torn line would glue the next row to it: rewrite the good ones.
+        atomic_write(path, lambda tmp: tmp.write_text("".join(f"{g}\n" for g in good)))
+    return rows
+
+
+def _append_row(path: Path, row: dict) -> None:
+    with open(path, "a") as handle:
+        handle.write(json.dumps(row) + "\n")
+        handle.flush()
+        os.fsync(handle.fileno())
+
+
+def _check_settings(out: Path, settings: dict) -> None:
+    path = out / SETTINGS_FILE
+    if path.is_file():
+        previous = json.loads(path.read_text())
+        if previous != settings:
+            raise SNDSError(
+                f"{out} holds results of a sweep with {previous}, this one has {settings}; "
+                "use another --out"
+            )
+    else:
+        atomic_write(path, lambda tmp: tmp.write_text(json.dumps(settings) + "\n"))
+
+
+def write_csv(rows: Sequence[dict], path: Path) -> None:
+    """Writes rows as CSV with the columns :data:`ROW_FIELDS`, atomically."""
+
+    def write(tmp: Path) -> None:
+        with open(tmp, "w", newline="") as handle:
+            writer = csv.DictWriter(handle, fieldnames=list(ROW_FIELDS), extrasaction="ignore")
+            writer.writeheader()
+            writer.writerows(rows)
+
+    atomic_write(path, write)
+
+
+def _groups(rows: Sequence[dict]) -> Iterator[tuple[str, str, list[dict]]]:
+    """(motion, method, rows) in the order they first appear."""
+    keys: dict[tuple[str, str], list[dict]] = {}
+    for row in rows:
+        keys.setdefault((row["motion"], row["method"]), []).append(row)
+    for (motion, method), group in keys.items():
+        yield motion, method, group
+
+
+def summarise(rows: Sequence[dict]) -> str:
+    """A Markdown table of mean ± std (over seeds) per motion and method."""
+
+    def stat(group: list[dict], key: str, fmt: str) -> str:
+        values = np.array([r[key] for r in group], dtype=float)
+        return f"{values.mean():{fmt}} ± {values.std():{fmt}}"
+
+    lines = [
+        "| motion | method | runs | velocity MSE (paper scale) | DTW (paper scale) "
+        "| train s | converged | decrease violations |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    total = 0
+    for motion, method, group in _groups(rows):
+        violations = sum(int(r["decrease_violations"]) for r in group)
+        total += violations
+        checked = METHODS[method].has_lyapunov if method in METHODS else True
+        lines.append(
+            f"| {motion} | {method} | {len(group)} | {stat(group, 'velocity_mse_paper', '.4f')} "
+            f"| {stat(group, 'dtw_paper', '.4f')} | {stat(group, 'train_seconds', '.1f')} "
+            f"| {stat(group, 'converged_fraction', '.3f')} "
+            f"| {violations if checked else 'n/a (no V)'} |"
+        )
+    lines += ["", f"Total decrease violations: {total}."]
+    return "\n".join(lines) + "\n"
+
+
+# ---------------------------------------------------------------------------------------------
+# Execution: in this process, on a local process pool, or on a Dask cluster.
+
+
+def _run_local(
+    tasks: Sequence[Task], *, jobs: int, steps: int | None, quick: bool
+) -> Iterator[dict]:
+    if jobs == 1:
+        # One worker gains nothing from a process: run here and skip the start-up.
+        for task in tasks:
+            yield run_task(task, steps=steps, quick=quick)
+        return
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    # spawn, not fork: forking a process whose torch already started threads can deadlock.
+    context = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(max_workers=jobs, mp_context=context) as pool:
+        futures = [pool.submit(run_task, task, steps=steps, quick=quick) for task in tasks]
+        try:
+            for future in as_completed(futures):
+                yield future.result()
+        except BaseException:
+            for future in futures:
+                future.cancel()
+            raise
+
+
+def _run_dask(
+    tasks: Sequence[Task], *, scheduler: str, steps: int | None, quick: bool
+) -> Iterator[dict]:
+    try:
+        from dask.distributed import Client, as_completed
+    except ImportError:
+        raise SNDSError("--scheduler needs Dask: pip install snds[cluster]") from None
+    with Client(scheduler) as client:
+        # pure=False: a rerun must train again, not return a cached result.
+        futures = [
+            client.submit(run_task, task, steps=steps, quick=quick, pure=False, key=task.key)
+            for task in tasks
+        ]
+        try:
+            for future in as_completed(futures):
+                yield future.result()
+        except BaseException:
+            client.cancel(futures)
+            raise
+
+
+def run_sweep(
+    tasks: Iterable[Task],
+    *,
+    out: Path,
+    jobs: int | None = None,
+    scheduler: str | None = None,
+    steps: int | None = None,
+    quick: bool = False,
+    progress: bool = True,
+) -> list[dict]:
+    """Runs the tasks not yet in ``out`` and writes the results.
+
+    Each finished row is appended to ``out/results.jsonl`` at once; tasks whose key is
+    already there are skipped, so an interrupted sweep resumes where it stopped. A folder
+    holds one setting of ``steps`` and ``quick`` (recorded in ``sweep.json``); mixing them is
+    refused. At the end ``results.csv`` and ``summary.md`` cover the given tasks.
+
+    Arguments:
+        tasks: The runs.
+        out: The results folder (created if needed).
+        jobs: Local worker processes (default: all cores; 1 runs in this process).
+        scheduler: A Dask scheduler address such as ``tcp://host:8786``; runs there instead.
+        steps: Optimiser steps instead of the default.
+        quick: A smaller stability check.
+        progress: Show a progress bar (only on a terminal).
+
+    Returns:
+        One row per task, in the order of ``tasks``.
+    """
+    from tqdm.auto import tqdm
+
+    tasks = list(dict.fromkeys(tasks))
+    jobs = jobs or os.cpu_count() or 1
+    if jobs < 1:
+        raise SNDSError(f"jobs must be >= 1, got {jobs}")
+    for task in tasks:
+        get_method(task.method)
+        resolve_motions(task.motion)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    _check_settings(out, {"steps": steps, "quick": quick})
+    results = out / RESULTS_FILE
+    done = _read_results(results)
+    pending = [task for task in tasks if task.key not in done]
+    if scheduler is not None:
+        rows = _run_dask(pending, scheduler=scheduler, steps=steps, quick=quick)
+    else:
+        rows = _run_local(pending, jobs=jobs, steps=steps, quick=quick)
+    show = progress and sys.stderr.isatty()
+    start = time.perf_counter()
+    with tqdm(
+        total=len(tasks),
+        initial=len(tasks) - len(pending),
+        disable=not show,
+        desc="benchmark",
+        unit="run",
+    ) as bar:
+        for row in rows:
+            _append_row(results, row)
+            done[Task.from_row(row).key] = row
+            bar.set_postfix_str(f"{row['motion']}/{row['method']}", refresh=False)
+            bar.update()
+    ordered = [done[task.key] for task in tasks]
+    write_csv(ordered, out / "results.csv")
+    summary = summarise(ordered)
+    seconds = time.perf_counter() - start
+    header = (
+        f"# Benchmark\n\n{len(tasks)} runs ({len(pending)} new, {seconds:.0f} s); "
+        f"steps {steps or 'default'}, {'quick' if quick else 'full'} stability check.\n\n"
+    )
+    atomic_write(out / "summary.md", lambda tmp: tmp.write_text(header + summary))
+    return ordered
+
+
+# ---------------------------------------------------------------------------------------------
+# Figures.
+
+
+def _save(fig, path: Path) -> Path:
+    atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=120))
+    return path
+
+
+def plot_benchmark(rows: Sequence[dict], out: Path) -> list[Path]:
+    """Writes ``mse_violin.png`` and ``train_time.png`` into ``out``.
+
+    The violins are of log10 of the velocity MSE (paper scale), one per method and motion,
+    with every run drawn as a dot (a violin needs two runs or more).
+    """
+    from matplotlib.figure import Figure
+
+    out = Path(out)
+    motions = list(dict.fromkeys(r["motion"] for r in rows))
+    methods = list(dict.fromkeys(r["method"] for r in rows))
+    width = 0.8 / max(1, len(methods))
+    size = (max(5.0, 1.2 * len(motions) * max(1, len(methods)) ** 0.5 + 2), 4.0)
+
+    def offsets(i: int) -> np.ndarray:
+        return np.arange(len(motions)) + (i - (len(methods) - 1) / 2) * width
+
+    fig = Figure(figsize=size, layout="constrained")
+    ax = fig.subplots()
+    for i, method in enumerate(methods):
+        color = f"C{i}"
+        for x, motion in zip(offsets(i), motions):
+            values = [
+                r["velocity_mse_paper"]
+                for r in rows
+                if r["motion"] == motion and r["method"] == method
+            ]
+            logs = np.log10(np.clip(np.asarray(values, dtype=float), 1e-12, None))
+            if len(logs) > 1 and np.ptp(logs) > 0:
+                parts = ax.violinplot([logs], positions=[x], widths=0.9 * width, showextrema=False)
+                for body in parts["bodies"]:
+                    body.set_facecolor(color)
+                    body.set_alpha(0.4)
+            ax.scatter(np.full(len(logs), x), logs, s=10, color=color, zorder=3)
+        ax.scatter([], [], color=color, label=method)
+    ax.set_xticks(range(len(motions)), motions, rotation=30, ha="right")
+    ax.set_xlim(-0.5, len(motions) - 0.5)
+    ax.set_ylabel("log10 velocity MSE (paper scale)")
+    ax.legend()
+    paths = [_save(fig, out / "mse_violin.png")]
+
+    fig = Figure(figsize=size, layout="constrained")
+    ax = fig.subplots()
+    for i, method in enumerate(methods):
+        means, stds = [], []
+        for motion in motions:
+            values = [
+                r["train_seconds"] for r in rows if r["motion"] == motion and r["method"] == method
+            ]
+            means.append(np.mean(values) if values else np.nan)
+            stds.append(np.std(values) if values else np.nan)
+        ax.bar(offsets(i), means, width=width, yerr=stds, label=method, color=f"C{i}")
+    ax.set_xticks(range(len(motions)), motions, rotation=30, ha="right")
+    ax.set_ylabel("train seconds (mean ± std over seeds)")
+    ax.legend()
+    paths.append(_save(fig, out / "train_time.png"))
+    return paths

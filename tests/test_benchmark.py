@@ -1,0 +1,203 @@
+"""The benchmark sweep: names, resumability, and the same numbers locally and on Dask.
+
+Every run here is the cheapest real one (Line, 30 steps, quick check), and the runs are
+shared: the CLI trains Line/snds, the sweep fixture resumes from its folder and trains only
+Line/bc, and the Dask cluster trains both again to compare.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import shutil
+import sys
+
+import pytest
+
+from snds import benchmark
+from snds.benchmark import MOTION_GROUPS, Task, resolve_methods, resolve_motions, run_sweep
+from snds.cli import main
+from snds.data import LASA_NAMES
+from snds.errors import DataError, SNDSError
+from snds.methods import METHODS
+
+TINY = {"steps": 30, "quick": True, "progress": False}
+TASKS = benchmark.make_tasks(["Line"], ["snds", "bc"], seeds=1)
+
+
+def test_groups_resolve_to_known_motions():
+    assert resolve_motions("paper8") == list(MOTION_GROUPS["paper8"])
+    assert len(MOTION_GROUPS["paper8"]) == 8
+    assert resolve_motions("all") == list(LASA_NAMES)
+    assert resolve_motions("multi") == [f"Multi_Models_{i}" for i in range(1, 5)]
+    for group in MOTION_GROUPS.values():
+        assert set(group) <= set(LASA_NAMES)
+
+
+def test_names_and_groups_mix_without_duplicates():
+    assert resolve_motions(" sine, Line ,paper8") == ["Sine", "Line"] + [
+        m for m in MOTION_GROUPS["paper8"] if m != "Sine"
+    ]
+
+
+@pytest.mark.parametrize(
+    ("spec", "named"),
+    [("Sinus", "'Sinus'"), ("paper9", "'paper9'"), ("Line,nope", "'nope'"), (" , ", "no motions")],
+)
+def test_unknown_motion_is_named(spec, named):
+    with pytest.raises(DataError, match=named):
+        resolve_motions(spec)
+
+
+def test_methods_registry_and_unknown_method():
+    assert resolve_methods("snds,bc,snds") == ["snds", "bc"]
+    assert METHODS["snds"].policy_config.stable and METHODS["snds"].has_lyapunov
+    assert not METHODS["bc"].policy_config.stable and not METHODS["bc"].has_lyapunov
+    with pytest.raises(SNDSError, match="'gmr'"):
+        resolve_methods("snds,gmr")
+
+
+def test_task_key_is_stable_and_round_trips_through_a_row():
+    task = Task("Sine", "bc", 2, None)
+    assert task.key == "Sine/bc/seed=2/demos=all"
+    assert Task.from_row({"motion": "Sine", "method": "bc", "seed": 2, "demos": None}) == task
+    assert Task("Sine", "bc", 2, 3).key != task.key
+
+
+def test_cli_rejects_bad_names_with_exit_2(tmp_path, capsys):
+    for bad in (["--methods", "snds,nope"], ["--motions", "Nope"]):
+        code = main(["--quiet", "benchmark", *bad, "--out", str(tmp_path)])
+        assert code == 2
+        err = capsys.readouterr().err
+        assert err.startswith("snds: error:") and "nope" in err.lower()
+        assert err.count("\n") == 1
+
+
+@pytest.fixture(scope="module")
+def cli_run(tmp_path_factory):
+    """`snds benchmark` end to end: one run of Line/snds."""
+    out = tmp_path_factory.mktemp("cli")
+    args = ["--motions", "Line", "--methods", "snds", "--seeds", "1", "--steps", "30"]
+    assert main(["--quiet", "benchmark", *args, "--quick", "--jobs", "1", "--out", str(out)]) == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def local_sweep(cli_run, tmp_path_factory):
+    """Line x (snds, bc) in-process, resumed from the CLI's folder; counts the runs."""
+    out = tmp_path_factory.mktemp("sweep") / "local"
+    shutil.copytree(cli_run, out)
+    calls = []
+    original = benchmark.run_task
+
+    def counting(task, **kwargs):
+        calls.append(task.key)
+        return original(task, **kwargs)
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(benchmark, "run_task", counting)
+        rows = run_sweep(TASKS, out=out, jobs=1, **TINY)
+    return out, rows, calls
+
+
+def test_cli_writes_results_summary_and_figures(cli_run):
+    names = {p.name for p in cli_run.iterdir()}
+    assert {"results.jsonl", "results.csv", "summary.md", "mse_violin.png", "train_time.png"} <= (
+        names
+    )
+    with open(cli_run / "results.csv") as handle:
+        rows = list(csv.DictReader(handle))
+    assert [(r["motion"], r["method"], r["seed"]) for r in rows] == [("Line", "snds", "0")]
+    assert int(rows[0]["samples_checked"]) == 5000
+    assert int(rows[0]["decrease_violations"]) == 0
+
+
+def test_sweep_writes_one_row_per_task_and_a_summary(local_sweep):
+    out, rows, calls = local_sweep
+    # The CLI's Line/snds row was already in the folder: only bc was trained.
+    assert calls == ["Line/bc/seed=0/demos=all"]
+    assert [Task.from_row(r) for r in rows] == TASKS
+    with open(out / "results.csv") as handle:
+        table = list(csv.DictReader(handle))
+    assert len(table) == 2 and list(table[0]) == list(benchmark.ROW_FIELDS)
+    summary = (out / "summary.md").read_text()
+    assert "| Line | snds | 1 |" in summary and "| Line | bc | 1 |" in summary
+    assert "Total decrease violations: 0." in summary
+    # The unconstrained policy has no V, so nothing was checked; the stable one has a V.
+    by_method = {r["method"]: r for r in rows}
+    assert by_method["bc"]["samples_checked"] == 0
+    assert by_method["snds"]["samples_checked"] == 5000
+
+
+def test_rerun_skips_finished_rows(local_sweep, monkeypatch):
+    out, rows, _ = local_sweep
+    before = (out / "results.jsonl").read_bytes()
+    calls = []
+    monkeypatch.setattr(benchmark, "run_task", lambda task, **_: calls.append(task))
+    again = run_sweep(TASKS, out=out, jobs=1, **TINY)
+    assert calls == []
+    assert (out / "results.jsonl").read_bytes() == before
+    assert again == rows
+
+
+def test_torn_last_line_is_dropped_and_rerun(local_sweep, tmp_path, monkeypatch):
+    out, rows, _ = local_sweep
+    shutil.copytree(out, tmp_path / "torn")
+    results = tmp_path / "torn" / "results.jsonl"
+    lines = results.read_text().splitlines()
+    # A kill during the write of the second row leaves half of it and no newline.
+    results.write_text(lines[0] + "\n" + lines[1][: len(lines[1]) // 2])
+    redo = {json.loads(lines[1])["method"]: json.loads(lines[1])}
+    calls = []
+
+    def fake(task, **_):
+        calls.append(task.key)
+        return redo[task.method]
+
+    monkeypatch.setattr(benchmark, "run_task", fake)
+    again = run_sweep(TASKS, out=tmp_path / "torn", jobs=1, **TINY)
+    assert len(calls) == 1 and again == rows
+    assert [json.loads(line) for line in results.read_text().splitlines()] == [
+        json.loads(lines[0]),
+        json.loads(lines[1]),
+    ]
+
+
+def test_other_settings_in_the_same_folder_are_refused(local_sweep, monkeypatch):
+    out, _, _ = local_sweep
+    monkeypatch.setattr(benchmark, "run_task", lambda task, **_: pytest.fail("ran"))
+    with pytest.raises(SNDSError, match="another --out"):
+        run_sweep(TASKS, out=out, jobs=1, steps=31, quick=True, progress=False)
+
+
+def test_dask_cluster_gives_the_local_numbers(local_sweep, tmp_path):
+    distributed = pytest.importorskip(
+        "dask.distributed", reason="dask[distributed] not installed (pip install snds[cluster])"
+    )
+    _, local_rows, _ = local_sweep
+    with distributed.LocalCluster(
+        n_workers=2,
+        threads_per_worker=1,
+        processes=True,
+        host="127.0.0.1",
+        dashboard_address=None,
+    ) as cluster:
+        rows = run_sweep(TASKS, out=tmp_path, scheduler=cluster.scheduler_address, **TINY)
+    assert [Task.from_row(r) for r in rows] == TASKS
+    # One torch thread and a seed make training and evaluation deterministic: bit-equal.
+    for local, remote in zip(local_rows, rows):
+        for key in benchmark.ROW_FIELDS:
+            if key in ("train_seconds", "peak_memory_mb"):
+                continue
+            if isinstance(local[key], float):
+                assert remote[key] == pytest.approx(local[key], rel=1e-9, nan_ok=True), key
+            else:
+                assert remote[key] == local[key], key
+
+
+def test_scheduler_without_dask_says_how_to_install(tmp_path, monkeypatch):
+    # None in sys.modules makes the import fail as if the package were absent.
+    monkeypatch.setitem(sys.modules, "dask.distributed", None)
+    monkeypatch.setattr(benchmark, "run_task", lambda task, **_: pytest.fail("ran"))
+    with pytest.raises(SNDSError, match=r"pip install snds\[cluster\]"):
+        run_sweep(TASKS, out=tmp_path, scheduler="tcp://127.0.0.1:1", **TINY)
