@@ -31,6 +31,10 @@ def test_train_writes_model_metrics_and_config(trained):
         "dtw_paper",
         "final_distance",
         "train_seconds",
+        "frechet",
+        "frechet_paper",
+        "swept_area",
+        "swept_area_paper",
     ):
         assert np.isfinite(metrics[key]), key
     stability = metrics["stability"]

@@ -8,7 +8,7 @@ import numpy as np
 import torch
 
 from snds.data.demonstrations import Demonstrations, Split
-from snds.metrics import dtw, final_distance, velocity_mse
+from snds.metrics import dtw, final_distance, frechet, swept_error_area, velocity_mse
 from snds.policy import StablePolicy
 from snds.rollout import rollout_numpy
 from snds.stability import check_stability
@@ -36,7 +36,8 @@ def reproduce(policy: StablePolicy, demos: Demonstrations, indices: list[int]) -
 
 
 def accuracy(policy: StablePolicy, demos: Demonstrations, split: Split) -> dict[str, float]:
-    """Velocity MSE on the test samples, DTW of reproductions and their final distance.
+    """Velocity MSE on the test samples; DTW, Frechet distance, swept error area (2-D only) and
+    final distance of the reproductions from the demonstrations' starts.
 
     Both in user units and in the paper's scale (positions relative to the target divided by
     the largest distance of a demonstrated position from the target, velocities by the
@@ -58,7 +59,18 @@ def accuracy(policy: StablePolicy, demos: Demonstrations, split: Split) -> dict[
     paths = reproduce(policy, demos, indices)
     references = [demos[i].positions for i in indices]
     dtws = [dtw(p, r) for p, r in zip(paths, references)]
+    frechets = [frechet(p, r) for p, r in zip(paths, references)]
+    # The swept error area is defined for planar motions only.
+    areas = (
+        [swept_error_area(p, r) for p, r in zip(paths, references)]
+        if demos.dim == 2
+        else [float("nan")]
+    )
     return {
+        "frechet": float(np.mean(frechets)),
+        "frechet_paper": float(np.mean(frechets) / extent),
+        "swept_area": float(np.mean(areas)),
+        "swept_area_paper": float(np.mean(areas) / extent**2),
         "velocity_mse": velocity_mse(predicted, velocities),
         "velocity_mse_paper": velocity_mse(predicted / speed, velocities / speed),
         "velocity_mse_on": "test samples" if has_test else "training samples (no test split)",
