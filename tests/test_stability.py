@@ -77,3 +77,28 @@ def test_report_includes_a_safe_step_above_the_rollout_step(spiral):
     report = check_stability(policy, spiral, rollouts=50, samples=5000, seed=0)
     assert report.largest_safe_dt > 0
     assert report.converged_fraction == 1.0
+
+
+def test_spurious_attractors_are_found_and_clustered():
+    # A field with a second equilibrium at (0.5, 0.5): starts with x1 > 0.25 go there.
+    t = np.linspace(0, 1, 50)
+    x = np.stack([1 - t, 0 * t], axis=1)
+    demos = Demonstrations(
+        (Demonstration(positions=x, velocities=np.tile([-1.0, 0], (50, 1)), times=t),),
+        np.zeros(2),
+    )
+    trap = torch.tensor([0.5, 0.5], dtype=torch.float64)
+
+    class TwoWells(torch.nn.Module):
+        stable = False
+
+        def forward(self, x):
+            return torch.where(x[:, :1] > 0.25, trap - x, -x)
+
+    report = check_stability(TwoWells(), demos, rollouts=200, samples=0, seed=0)
+    assert 0.2 < report.converged_fraction < 0.8
+    assert len(report.spurious_attractors) == 1
+    center = np.array(report.spurious_attractors[0]["center"])
+    assert np.linalg.norm(center - trap.numpy()) < 0.01
+    assert report.spurious_attractors[0]["count"] == round(200 * (1 - report.converged_fraction))
+    assert report.still_moving == 0

@@ -26,6 +26,12 @@ class StabilityReport:
         converged_fraction: Fraction that ended within the tolerance of the target.
         max_final_distance: Largest distance of a rollout's end from the target (user units);
             a settled rollout (see :func:`_roll_out_and_settle`) ends where it settled.
+        spurious_attractors: Places where rollouts stopped away from the target: end points
+            outside the tolerance where the policy's speed is below 1e-3 of the fastest
+            demonstrated speed, clustered within 5% of the extent; each {"center", "count"},
+            the 20 largest clusters, largest first.
+        still_moving: Rollouts outside the tolerance at the end that were still moving (too
+            slow, or circling).
         median_time_to_converge: Median time (s) to enter the tolerance for good, over the
             converged rollouts (NaN if none converged).
         samples_checked: States at which the decrease condition was checked (0 for a policy
@@ -42,6 +48,8 @@ class StabilityReport:
     rollouts: int
     converged_fraction: float
     max_final_distance: float
+    spurious_attractors: list
+    still_moving: int
     median_time_to_converge: float
     samples_checked: int
     decrease_violations: int
@@ -180,6 +188,9 @@ def check_stability(
         policy, starts, torch.tensor(target), dt=dt, steps=steps, tolerance=tolerance
     )
     final, arrived = arrivals.final_distance, arrivals.arrival_step
+    attractors, moving = _stalled(
+        policy, arrivals.final_state[final > tolerance], speed=demos.max_speed(), extent=extent
+    )
     times = arrived[arrived >= 0].double() * dt
     violations, checked, safe_dt = 0, 0, float("nan")
     if policy.stable and samples > 0:
@@ -195,6 +206,8 @@ def check_stability(
         rollouts=rollouts,
         converged_fraction=float(((final <= tolerance) & finite).double().mean()),
         max_final_distance=float(final.max()) if bool(finite.all()) else float("inf"),
+        spurious_attractors=attractors,
+        still_moving=moving,
         median_time_to_converge=float(times.median()) if len(times) else float("nan"),
         samples_checked=checked,
         decrease_violations=violations,
@@ -206,8 +219,33 @@ def check_stability(
     )
 
 
+def _stalled(
+    policy: StablePolicy, ends: torch.Tensor, *, speed: float, extent: float
+) -> tuple[list[dict], int]:
+    """Clusters the end points that stalled (spurious attractors); counts those still moving."""
+    if len(ends) == 0:
+        return [], 0
+    finite = torch.isfinite(ends).all(dim=-1)
+    velocity = policy(ends[finite])
+    stalled = ends[finite][velocity.norm(dim=-1) < 1e-3 * speed]
+    clusters: list[dict] = []
+    # Greedy clustering: few points, and a cluster radius much smaller than the box.
+    for point in stalled:
+        for cluster in clusters:
+            if (point - cluster["center"]).norm() <= 0.05 * extent:
+                cluster["count"] += 1
+                break
+        else:
+            clusters.append({"center": point, "count": 1})
+    clusters.sort(key=lambda c: -c["count"])
+    # The 20 largest are enough to see where a policy gets stuck and keep metrics.json short.
+    attractors = [{"center": c["center"].tolist(), "count": c["count"]} for c in clusters[:20]]
+    return attractors, int(len(ends) - len(stalled))
+
+
 @dataclass(frozen=True)
 class _Arrivals:
+    final_state: torch.Tensor  # (B, n)
     final_distance: torch.Tensor  # (B,)
     arrival_step: torch.Tensor  # (B,), -1 if not within the tolerance at the end
 
@@ -252,7 +290,7 @@ def _roll_out_and_settle(
     final = (x - target).norm(dim=-1)
     inside = final <= tolerance
     arrival = torch.where(inside, last_outside + 1, torch.full_like(last_outside, -1))
-    return _Arrivals(final, arrival)
+    return _Arrivals(x, final, arrival)
 
 
 def _float64_copy(policy: StablePolicy) -> StablePolicy:
