@@ -102,3 +102,15 @@ def test_spurious_attractors_are_found_and_clustered():
     assert np.linalg.norm(center - trap.numpy()) < 0.01
     assert report.spurious_attractors[0]["count"] == round(200 * (1 - report.converged_fraction))
     assert report.still_moving == 0
+
+
+def test_grid_starts_cover_the_box_corners(spiral):
+    policy = make_policy(spiral, dataclasses.replace(SMALL, decay_rate=1.0), seed=3)
+    report = check_stability(policy, spiral, rollouts=50, grid=True, samples=0, seed=0)
+    assert report.rollouts == 64  # 8 x 8 >= 50
+    assert report.converged_fraction == 1.0
+    from snds.stability import _grid_box
+
+    points = _grid_box(np.array([1.0, -2.0]), 3.0, 9)
+    assert points.shape == (9, 2)
+    assert {tuple(p) for p in points} >= {(-2.0, -5.0), (4.0, 1.0), (1.0, -2.0)}

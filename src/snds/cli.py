@@ -60,6 +60,9 @@ def _check_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--samples", type=int, default=100_000, help="states of the decrease-condition check"
     )
+    parser.add_argument(
+        "--grid", action="store_true", help="stability rollouts from a grid, not random starts"
+    )
 
 
 def _build_parser() -> argparse.ArgumentParser:
@@ -194,7 +197,13 @@ def _train(args: argparse.Namespace) -> int:
     save_model(policy, out, extra=record)
     write_json(out / "loss.json", {"history": result.history})
     metrics = evaluate(
-        policy, demos, split, seed=args.seed, rollouts=args.rollouts, samples=args.samples
+        policy,
+        demos,
+        split,
+        seed=args.seed,
+        rollouts=args.rollouts,
+        grid=args.grid,
+        samples=args.samples,
     )
     metrics["train_seconds"] = result.seconds
     write_json(out / "metrics.json", to_jsonable(metrics))
@@ -232,6 +241,7 @@ def _evaluate(args: argparse.Namespace) -> int:
         _make_split(demos, description.get("split", {})),
         seed=args.seed,
         rollouts=args.rollouts,
+        grid=args.grid,
         samples=args.samples,
     )
     metrics["train_seconds"] = description.get("train_result", {}).get("seconds")

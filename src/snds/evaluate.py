@@ -88,6 +88,7 @@ def evaluate(
     seed: int = 0,
     rollouts: int = 1000,
     samples: int = 100_000,
+    grid: bool = False,
 ) -> dict:
     """Accuracy and the stability report, as one JSON-ready record.
 
@@ -98,9 +99,12 @@ def evaluate(
         seed: Seed of the stability check's random starts and samples.
         rollouts: Random starts of the stability check.
         samples: States of the decrease-condition check.
+        grid: Start the stability rollouts from a regular grid instead of random states.
     """
     policy64 = copy.deepcopy(policy).to(torch.float64).eval()
     record = accuracy(policy64, demos, split)
-    report = check_stability(policy64, demos, rollouts=rollouts, samples=samples, seed=seed)
+    report = check_stability(
+        policy64, demos, rollouts=rollouts, samples=samples, seed=seed, grid=grid
+    )
     record["stability"] = report.to_dict()
     return record

@@ -64,6 +64,13 @@ class StabilityReport:
         return asdict(self)
 
 
+def _grid_box(center: np.ndarray, half_width: float, count: int) -> np.ndarray:
+    per_axis = max(2, int(np.ceil(count ** (1.0 / center.shape[0]) - 1e-9)))
+    axis = np.linspace(-half_width, half_width, per_axis)
+    mesh = np.meshgrid(*([axis] * center.shape[0]), indexing="ij")
+    return center + np.stack([m.ravel() for m in mesh], axis=-1)
+
+
 def _uniform_box(
     center: np.ndarray, half_width: float, count: int, rng: np.random.Generator
 ) -> np.ndarray:
@@ -144,6 +151,7 @@ def check_stability(
     demos: Demonstrations,
     *,
     rollouts: int = 1000,
+    grid: bool = False,
     box_factor: float = 3.0,
     horizon_factor: float = 10.0,
     tolerance_factor: float = 0.01,
@@ -166,7 +174,9 @@ def check_stability(
     Arguments:
         policy: The policy (a copy is evaluated in float64; the original is not changed).
         demos: The demonstrations that define the extent, time step and horizon.
-        rollouts: Number of random starts.
+        rollouts: Number of random starts (with ``grid``, at least this many grid points).
+        grid: Start from a regular grid over the box (k points per axis, k^n >= rollouts)
+            instead of uniform random states; the grid includes the box's corners.
         box_factor: Half-width of their box, in extents.
         horizon_factor: Rollout duration, in longest-demonstration durations.
         tolerance_factor: Arrival tolerance, in extents.
@@ -183,7 +193,12 @@ def check_stability(
     horizon = horizon_factor * demos.max_duration()
     steps = int(np.ceil(horizon / dt))
     tolerance = tolerance_factor * extent
-    starts = torch.as_tensor(_uniform_box(target, box_factor * extent, rollouts, rng))
+    half_width = box_factor * extent
+    if grid:
+        points = _grid_box(target, half_width, rollouts)
+    else:
+        points = _uniform_box(target, half_width, rollouts, rng)
+    starts = torch.as_tensor(points)
     arrivals = _roll_out_and_settle(
         policy, starts, torch.tensor(target), dt=dt, steps=steps, tolerance=tolerance
     )
@@ -203,7 +218,7 @@ def check_stability(
         checked = samples
     finite = torch.isfinite(final)
     return StabilityReport(
-        rollouts=rollouts,
+        rollouts=len(starts),
         converged_fraction=float(((final <= tolerance) & finite).double().mean()),
         max_final_distance=float(final.max()) if bool(finite.all()) else float("inf"),
         spurious_attractors=attractors,
