@@ -24,18 +24,10 @@ import platform
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
-PAPER8 = ("Sine", "PShape", "Worm", "GShape", "NShape", "DoubleBendedLine", "CShape", "Angle")
-#: SNDS velocity MSE in the paper's Fig. 4 (its scale), per motion.
-PAPER_MSE = {
-    "Sine": 0.0018,
-    "PShape": 0.0016,
-    "Worm": 0.0031,
-    "GShape": 0.0024,
-    "NShape": 0.0016,
-    "DoubleBendedLine": 0.0028,
-    "CShape": 0.0014,
-    "Angle": 0.0012,
-}
+from snds.benchmark import MOTION_GROUPS, PAPER_SNDS_MSE
+
+PAPER8 = MOTION_GROUPS["paper8"]
+PAPER_MSE = PAPER_SNDS_MSE
 HERE = Path(__file__).resolve().parent
 
 

@@ -46,6 +46,18 @@ MOTION_GROUPS: dict[str, tuple[str, ...]] = {
     "all": LASA_NAMES,
 }
 
+#: SNDS velocity MSE (paper scale) in the paper's Fig. 4, for comparison in summaries.
+PAPER_SNDS_MSE: dict[str, float] = {
+    "Sine": 0.0018,
+    "PShape": 0.0016,
+    "Worm": 0.0031,
+    "GShape": 0.0024,
+    "NShape": 0.0016,
+    "DoubleBendedLine": 0.0028,
+    "CShape": 0.0014,
+    "Angle": 0.0012,
+}
+
 #: The columns of a result row, in the order of ``results.csv``.
 ROW_FIELDS: tuple[str, ...] = (
     "motion",
@@ -313,9 +325,9 @@ def summarise(rows: Sequence[dict]) -> str:
         return f"{values.mean():{fmt}} ± {values.std():{fmt}}"
 
     lines = [
-        "| motion | method | runs | velocity MSE (paper scale) | DTW (paper scale) "
-        "| train s | converged | decrease violations |",
-        "|---|---|---|---|---|---|---|---|",
+        "| motion | method | runs | velocity MSE (paper scale) | paper's SNDS MSE "
+        "| DTW (paper scale) | train s | converged | decrease violations |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     total = 0
     for motion, method, group in _groups(rows):
@@ -324,6 +336,7 @@ def summarise(rows: Sequence[dict]) -> str:
         checked = METHODS[method].has_lyapunov if method in METHODS else True
         lines.append(
             f"| {motion} | {method} | {len(group)} | {stat(group, 'velocity_mse_paper', '.4f')} "
+            f"| {PAPER_SNDS_MSE[motion] if motion in PAPER_SNDS_MSE else '-'} "
             f"| {stat(group, 'dtw_paper', '.4f')} | {stat(group, 'train_seconds', '.1f')} "
             f"| {stat(group, 'converged_fraction', '.3f')} "
             f"| {violations if checked else 'n/a (no V)'} |"
