@@ -2,14 +2,11 @@
 
 from __future__ import annotations
 
-import copy
-
 import numpy as np
-import torch
 
 from snds.data.demonstrations import Demonstrations, Split
 from snds.metrics import dtw, final_distance, frechet, swept_error_area, velocity_mse
-from snds.policy import StablePolicy
+from snds.policy import StablePolicy, float64_copy
 from snds.rollout import rollout_numpy
 from snds.stability import check_stability
 
@@ -101,7 +98,7 @@ def evaluate(
         samples: States of the decrease-condition check.
         grid: Start the stability rollouts from a regular grid instead of random states.
     """
-    policy64 = copy.deepcopy(policy).to(torch.float64).eval()
+    policy64 = float64_copy(policy)
     record = accuracy(policy64, demos, split)
     report = check_stability(
         policy64, demos, rollouts=rollouts, samples=samples, seed=seed, grid=grid

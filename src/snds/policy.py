@@ -5,6 +5,7 @@ The guarantee of the library is :func:`project`. Everything else wires networks 
 
 from __future__ import annotations
 
+import copy
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -189,3 +190,8 @@ class StablePolicy(nn.Module):
         """NumPy convenience: velocities at positions (*, n), both in user units."""
         param = next(self.parameters())
         return self(torch.as_tensor(x, dtype=param.dtype, device=param.device)).cpu().numpy()
+
+
+def float64_copy(policy: nn.Module) -> nn.Module:
+    """A float64 copy of a policy in eval mode, for checks; the original is not changed."""
+    return copy.deepcopy(policy).to(torch.float64).eval()

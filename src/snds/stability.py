@@ -7,14 +7,13 @@ rolls the policy out from random starts far from the demonstrations.
 
 from __future__ import annotations
 
-import copy
 from dataclasses import asdict, dataclass
 
 import numpy as np
 import torch
 
 from snds.data.demonstrations import Demonstrations
-from snds.policy import StablePolicy
+from snds.policy import StablePolicy, float64_copy
 
 
 @dataclass(frozen=True)
@@ -105,7 +104,7 @@ def decrease_violations(policy: StablePolicy, x: torch.Tensor, *, rtol: float = 
 def largest_safe_step(
     policy: StablePolicy, x: torch.Tensor, *, upper: float, iterations: int = 40
 ) -> float:
-    r"""The largest Euler step h with :math:`V(x + h \pi(x)) < V(x)` at every given state.
+    r"""The largest Euler step h with :math:`V(x + h \pi(x)) \le V(x)` at every given state.
 
     Along a descent direction of a convex V, :math:`h \mapsto V(x + h \pi(x))` is convex and
     starts decreasing, so the steps that decrease V form an interval :math:`(0, h^*(x))`; the
@@ -185,7 +184,7 @@ def check_stability(
         seed: Seed of the random starts and samples.
         chunk: States per batch in the decrease check (bounds memory).
     """
-    policy = _float64_copy(policy)
+    policy = float64_copy(policy)
     rng = np.random.default_rng(seed)
     extent = demos.extent()
     target = demos.target
@@ -306,7 +305,3 @@ def _roll_out_and_settle(
     inside = final <= tolerance
     arrival = torch.where(inside, last_outside + 1, torch.full_like(last_outside, -1))
     return _Arrivals(x, final, arrival)
-
-
-def _float64_copy(policy: StablePolicy) -> StablePolicy:
-    return copy.deepcopy(policy).to(torch.float64).eval()
