@@ -21,7 +21,7 @@ from snds.data import LASA_NAMES
 from snds.errors import DataError, SNDSError
 from snds.methods import METHODS
 
-TINY = {"steps": 30, "quick": True, "progress": False}
+TINY = {"settings": benchmark.SweepSettings.quick(steps=30), "progress": False}
 TASKS = benchmark.make_tasks(["Line"], ["snds", "bc"], seeds=1)
 
 
@@ -90,9 +90,9 @@ def local_sweep(cli_run, tmp_path_factory):
     calls = []
     original = benchmark.run_task
 
-    def counting(task, **kwargs):
+    def counting(task, settings):
         calls.append(task.key)
-        return original(task, **kwargs)
+        return original(task, settings)
 
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(benchmark, "run_task", counting)
@@ -102,14 +102,51 @@ def local_sweep(cli_run, tmp_path_factory):
 
 def test_cli_writes_results_summary_and_figures(cli_run):
     names = {p.name for p in cli_run.iterdir()}
-    assert {"results.jsonl", "results.csv", "summary.md", "mse_violin.png", "train_time.png"} <= (
-        names
-    )
+    figures = {"mse_violin.png", "train_time.png", "converged.png", "streamlines.png"}
+    assert {"results.jsonl", "results.csv", "summary.md", "sweep.json", "models"} | figures <= names
     with open(cli_run / "results.csv") as handle:
         rows = list(csv.DictReader(handle))
     assert [(r["motion"], r["method"], r["seed"]) for r in rows] == [("Line", "snds", "0")]
     assert int(rows[0]["samples_checked"]) == 5000
     assert int(rows[0]["decrease_violations"]) == 0
+    # The interpreter with torch alone is well over 50 MiB; a whole machine's is far more.
+    assert 50 < float(rows[0]["peak_memory_mb"]) < 8192
+
+
+def test_sweep_keeps_each_run_model_loadable_with_its_numbers(cli_run):
+    # GIVEN the model the sweep kept for Line/snds seed 0
+    from snds.data import load_lasa, split_samples
+    from snds.evaluate import accuracy
+    from snds.io import load_model
+    from snds.policy import float64_copy
+
+    task = Task("Line", "snds", 0, None)
+    policy, description = load_model(cli_run / task.model_dir)
+    assert description["data"] == {"motion": "Line", "demos": None}
+    assert description["train"]["steps"] == 30
+    # THEN it reproduces the row's velocity MSE on the same split
+    row = json.loads((cli_run / "results.jsonl").read_text().splitlines()[0])
+    demos = load_lasa("Line")
+    split = split_samples(demos, test_fraction=0.2, seed=0)
+    mse = accuracy(float64_copy(policy), demos, split)["velocity_mse"]
+    assert mse == pytest.approx(row["velocity_mse"], rel=1e-9)
+
+
+def test_cli_records_the_stability_check_size(tmp_path, monkeypatch):
+    seen = []
+
+    def fake(task, settings):
+        seen.append(settings)
+        raise SNDSError("stop here")
+
+    monkeypatch.setattr(benchmark, "run_task", fake)
+    args = ["--motions", "Line", "--methods", "snds", "--seeds", "1", "--jobs", "1"]
+    code = main(["--quiet", "benchmark", *args, "--rollouts", "7", "--out", str(tmp_path)])
+    assert code == 2
+    assert seen == [benchmark.SweepSettings(rollouts=7, samples=100_000)]
+    assert json.loads((tmp_path / "sweep.json").read_text())["rollouts"] == 7
+    with pytest.raises(SNDSError, match="rollouts"):
+        benchmark.SweepSettings(rollouts=0)
 
 
 def test_sweep_writes_one_row_per_task_and_a_summary(local_sweep):
@@ -133,7 +170,7 @@ def test_rerun_skips_finished_rows(local_sweep, monkeypatch):
     out, rows, _ = local_sweep
     before = (out / "results.jsonl").read_bytes()
     calls = []
-    monkeypatch.setattr(benchmark, "run_task", lambda task, **_: calls.append(task))
+    monkeypatch.setattr(benchmark, "run_task", lambda task, settings: calls.append(task))
     again = run_sweep(TASKS, out=out, jobs=1, **TINY)
     assert calls == []
     assert (out / "results.jsonl").read_bytes() == before
@@ -150,9 +187,9 @@ def test_torn_last_line_is_dropped_and_rerun(local_sweep, tmp_path, monkeypatch)
     redo = {json.loads(lines[1])["method"]: json.loads(lines[1])}
     calls = []
 
-    def fake(task, **_):
+    def fake(task, settings):
         calls.append(task.key)
-        return redo[task.method]
+        return benchmark.TaskOutput(row=redo[task.method], model={"model.json": b"{}"})
 
     monkeypatch.setattr(benchmark, "run_task", fake)
     again = run_sweep(TASKS, out=tmp_path / "torn", jobs=1, **TINY)
@@ -165,9 +202,9 @@ def test_torn_last_line_is_dropped_and_rerun(local_sweep, tmp_path, monkeypatch)
 
 def test_other_settings_in_the_same_folder_are_refused(local_sweep, monkeypatch):
     out, _, _ = local_sweep
-    monkeypatch.setattr(benchmark, "run_task", lambda task, **_: pytest.fail("ran"))
+    monkeypatch.setattr(benchmark, "run_task", lambda task, settings: pytest.fail("ran"))
     with pytest.raises(SNDSError, match="another --out"):
-        run_sweep(TASKS, out=out, jobs=1, steps=31, quick=True, progress=False)
+        run_sweep(TASKS, out=out, jobs=1, settings=benchmark.SweepSettings.quick(steps=31))
 
 
 def test_dask_cluster_gives_the_local_numbers(local_sweep, tmp_path):
@@ -198,6 +235,6 @@ def test_dask_cluster_gives_the_local_numbers(local_sweep, tmp_path):
 def test_scheduler_without_dask_says_how_to_install(tmp_path, monkeypatch):
     # None in sys.modules makes the import fail as if the package were absent.
     monkeypatch.setitem(sys.modules, "dask.distributed", None)
-    monkeypatch.setattr(benchmark, "run_task", lambda task, **_: pytest.fail("ran"))
+    monkeypatch.setattr(benchmark, "run_task", lambda task, settings: pytest.fail("ran"))
     with pytest.raises(SNDSError, match=r"pip install snds\[cluster\]"):
         run_sweep(TASKS, out=tmp_path, scheduler="tcp://127.0.0.1:1", **TINY)

@@ -10,10 +10,12 @@ import torch
 
 from snds.data import Demonstration, Demonstrations, Normalization
 from snds.plotting import (
+    Panel,
     _plane,
     plot_all,
     plot_loss,
     plot_lyapunov,
+    plot_panels,
     plot_rollout_lyapunov,
 )
 from snds.policy import PolicyConfig, StablePolicy
@@ -107,3 +109,19 @@ def test_slice_holds_other_coordinates_at_the_target() -> None:
     assert x1[0] < data[:, 0].min() and x1[-1] > data[:, 0].max()
     assert x2[0] < data[:, 1].min() and x2[-1] > data[:, 1].max()
     assert x1[0] < demos.target[0] < x1[-1] and x2[0] < demos.target[1] < x2[-1]
+
+
+def test_panels_grid_with_an_empty_cell(tmp_path: Path) -> None:
+    # GIVEN a stable and an unconstrained policy on one task, and a second column half empty
+    demos = line_demos()
+    rows = [
+        [Panel(tiny_policy(demos), demos, "stable"), Panel(tiny_policy(demos), demos, "again")],
+        [Panel(tiny_policy(demos, stable=False), demos, "bc"), None],
+    ]
+    # WHEN the grid is drawn
+    path = plot_panels(rows, tmp_path / "panels.png", random_starts=3)
+    # THEN one real PNG and nothing else is written
+    assert_png(path)
+    assert [p.name for p in tmp_path.iterdir()] == ["panels.png"]
+    with pytest.raises(ValueError, match="at least one panel"):
+        plot_panels([], tmp_path / "none.png")

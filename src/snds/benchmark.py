@@ -20,7 +20,7 @@ import resource
 import sys
 import time
 from collections.abc import Iterable, Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -80,6 +80,40 @@ ROW_FIELDS: tuple[str, ...] = (
 #: The sweep settings that change results; a folder holds results of one setting only.
 SETTINGS_FILE = "sweep.json"
 RESULTS_FILE = "results.jsonl"
+#: Each run's trained model, under ``models/<motion>/<method>/seed=<s>-demos=<d>/``.
+MODELS_DIR = "models"
+
+
+@dataclass(frozen=True, kw_only=True)
+class SweepSettings:
+    """What every run of a sweep shares; recorded in ``sweep.json``.
+
+    Attributes:
+        steps: Optimiser steps instead of the default :class:`~snds.train.TrainConfig`'s.
+        rollouts: Random starts of each run's stability check.
+        samples: States of each run's decrease-condition check.
+    """
+
+    steps: int | None = None
+    rollouts: int = 1000
+    samples: int = 100_000
+
+    def __post_init__(self) -> None:
+        if self.steps is not None and self.steps < 1:
+            raise SNDSError(f"steps must be >= 1, got {self.steps}")
+        if self.rollouts < 1 or self.samples < 0:
+            raise SNDSError(
+                f"need rollouts >= 1 and samples >= 0, got {self.rollouts} and {self.samples}"
+            )
+
+    @classmethod
+    def quick(cls, *, steps: int | None = None) -> SweepSettings:
+        """A smaller stability check (100 rollouts, 5,000 samples) for smoke runs."""
+        return cls(steps=steps, rollouts=100, samples=5000)
+
+    def to_dict(self) -> dict:
+        """JSON-ready form."""
+        return asdict(self)
 
 
 def _names(spec: str) -> list[str]:
@@ -150,6 +184,12 @@ class Task:
         demos = "all" if self.demos is None else str(self.demos)
         return f"{self.motion}/{self.method}/seed={self.seed}/demos={demos}"
 
+    @property
+    def model_dir(self) -> Path:
+        """Where the run's model goes, relative to the sweep's folder."""
+        demos = "all" if self.demos is None else str(self.demos)
+        return Path(MODELS_DIR, self.motion, self.method, f"seed={self.seed}-demos={demos}")
+
     @classmethod
     def from_row(cls, row: dict) -> Task:
         """The task a result row came from."""
@@ -173,32 +213,86 @@ def make_tasks(
     ]
 
 
-def _peak_rss_mb() -> float:
-    # ru_maxrss is in KiB on Linux and in bytes on macOS.
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    return peak / (2**20 if sys.platform == "darwin" else 2**10)
+class _PeakMemory:
+    """Peak resident memory of this process during a block, in MiB.
+
+    On Linux the kernel's high-water mark (``VmHWM``) is reset at the start (writing 5 to
+    ``/proc/self/clear_refs``), so the figure is the task's own peak, whatever ran before it
+    in the same worker. Elsewhere it falls back to ``ru_maxrss``, which never resets: exact
+    only for a worker's first task. Either way it costs nothing, unlike tracemalloc, which
+    slows training several times and misses torch's native allocations.
+    """
+
+    def __enter__(self) -> _PeakMemory:
+        self.resettable = False
+        try:
+            Path("/proc/self/clear_refs").write_text("5")
+            self.resettable = self._hwm() is not None
+        except OSError:
+            pass
+        self.peak = 0.0
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        hwm = self._hwm() if self.resettable else None
+        if hwm is not None:
+            self.peak = hwm
+        else:
+            # ru_maxrss is in KiB on Linux and in bytes on macOS.
+            peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+            self.peak = peak / (2**20 if sys.platform == "darwin" else 2**10)
+
+    @staticmethod
+    def _hwm() -> float | None:
+        try:
+            for line in Path("/proc/self/status").read_text().splitlines():
+                if line.startswith("VmHWM:"):
+                    return float(line.split()[1]) / 1024
+        except OSError:
+            pass
+        return None
 
 
-def run_task(task: Task, *, steps: int | None = None, quick: bool = False) -> dict:
+@dataclass(frozen=True)
+class TaskOutput:
+    """What one run gives back to the sweep.
+
+    Attributes:
+        row: The flat result row, keys :data:`ROW_FIELDS`.
+        model: The trained model's files by name (``model.safetensors``, ``model.json``);
+            returned as bytes so that a run on a remote worker needs no shared disk.
+    """
+
+    row: dict
+    model: dict[str, bytes]
+
+
+def _model_files(policy, extra: dict) -> dict[str, bytes]:
+    import tempfile
+
+    from snds.io import save_model
+
+    with tempfile.TemporaryDirectory() as folder:
+        save_model(policy, Path(folder), extra=extra)
+        return {path.name: path.read_bytes() for path in Path(folder).iterdir()}
+
+
+def run_task(task: Task, settings: SweepSettings) -> TaskOutput:
     """Trains and evaluates one task in this process with one torch thread.
 
     The paper's protocol: a random 0.8 / 0.2 split of the samples (seeded by the task's
     seed), the default :class:`~snds.train.TrainConfig`, :func:`snds.evaluate.evaluate` on the
     test samples.
 
-    ``peak_memory_mb`` is how much the process's peak resident memory (``ru_maxrss``) grew
-    during the task. It costs nothing, unlike tracemalloc, which slows training several
-    times, and it sees torch's native allocations, which tracemalloc does not. It is exact
-    for the first task of a fresh worker; a later task in the same worker reports only what
-    it added above the earlier peak (often 0), so compare it across runs of fresh workers.
+    ``peak_memory_mb`` is the process's peak resident memory during the task (see
+    :class:`_PeakMemory`), the Python interpreter and torch included.
 
     Arguments:
         task: The run.
-        steps: Optimiser steps instead of the default (for tests and smoke runs).
-        quick: A smaller stability check (100 rollouts, 5,000 samples).
+        settings: Training steps and the size of the stability check.
 
     Returns:
-        One flat row with the keys :data:`ROW_FIELDS`.
+        The result row and the trained model's files.
     """
     import torch
 
@@ -211,36 +305,35 @@ def run_task(task: Task, *, steps: int | None = None, quick: bool = False) -> di
     # One thread per run: the networks are small, and runs side by side fill the cores.
     torch.set_num_threads(1)
     try:
-        rss_before = _peak_rss_mb()
-        demos = load_lasa(task.motion)
-        if task.demos is not None:
-            demos = demos.first(task.demos)
-        split = split_samples(demos, test_fraction=0.2, seed=task.seed)
-        config = (
-            TrainConfig(seed=task.seed)
-            if steps is None
-            else TrainConfig(seed=task.seed, steps=steps)
-        )
-        policy = StablePolicy(
-            dim=demos.dim,
-            normalization=Normalization.fit(demos),
-            config=method.policy_config,
-            seed=task.seed,
-        )
-        result = fit(policy, demos, split, config, progress=False)
-        metrics = evaluate(
-            policy,
-            demos,
-            split,
-            seed=task.seed,
-            rollouts=100 if quick else 1000,
-            samples=5000 if quick else 100_000,
-        )
-        peak = _peak_rss_mb() - rss_before
+        with _PeakMemory() as memory:
+            demos = load_lasa(task.motion)
+            if task.demos is not None:
+                demos = demos.first(task.demos)
+            split = split_samples(demos, test_fraction=0.2, seed=task.seed)
+            config = (
+                TrainConfig(seed=task.seed)
+                if settings.steps is None
+                else TrainConfig(seed=task.seed, steps=settings.steps)
+            )
+            policy = StablePolicy(
+                dim=demos.dim,
+                normalization=Normalization.fit(demos),
+                config=method.policy_config,
+                seed=task.seed,
+            )
+            result = fit(policy, demos, split, config, progress=False)
+            metrics = evaluate(
+                policy,
+                demos,
+                split,
+                seed=task.seed,
+                rollouts=settings.rollouts,
+                samples=settings.samples,
+            )
     finally:
         torch.set_num_threads(threads)
     stability = metrics["stability"]
-    return {
+    row = {
         "motion": task.motion,
         "method": task.method,
         "seed": task.seed,
@@ -248,8 +341,15 @@ def run_task(task: Task, *, steps: int | None = None, quick: bool = False) -> di
         "train_seconds": result.seconds,
         **{k: float(metrics[k]) for k in ROW_FIELDS if k in metrics},
         **{k: stability[k] for k in ROW_FIELDS if k in stability},
-        "peak_memory_mb": peak,
+        "peak_memory_mb": memory.peak,
     }
+    extra = {
+        "data": {"motion": task.motion, "demos": task.demos},
+        "split": {"test_fraction": 0.2, "seed": task.seed, "test_demos": None},
+        "train": config.to_dict(),
+        "train_result": {"seconds": result.seconds, "steps": result.steps},
+    }
+    return TaskOutput(row=row, model=_model_files(policy, extra))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -350,12 +450,12 @@ def summarise(rows: Sequence[dict]) -> str:
 
 
 def _run_local(
-    tasks: Sequence[Task], *, jobs: int, steps: int | None, quick: bool
-) -> Iterator[dict]:
+    tasks: Sequence[Task], *, jobs: int, settings: SweepSettings
+) -> Iterator[TaskOutput]:
     if jobs == 1:
         # One worker gains nothing from a process: run here and skip the start-up.
         for task in tasks:
-            yield run_task(task, steps=steps, quick=quick)
+            yield run_task(task, settings)
         return
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -363,7 +463,7 @@ def _run_local(
     # spawn, not fork: forking a process whose torch already started threads can deadlock.
     context = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(max_workers=jobs, mp_context=context) as pool:
-        futures = [pool.submit(run_task, task, steps=steps, quick=quick) for task in tasks]
+        futures = [pool.submit(run_task, task, settings) for task in tasks]
         try:
             for future in as_completed(futures):
                 yield future.result()
@@ -374,8 +474,8 @@ def _run_local(
 
 
 def _run_dask(
-    tasks: Sequence[Task], *, scheduler: str, steps: int | None, quick: bool
-) -> Iterator[dict]:
+    tasks: Sequence[Task], *, scheduler: str, settings: SweepSettings
+) -> Iterator[TaskOutput]:
     try:
         from dask.distributed import Client, as_completed
     except ImportError:
@@ -383,8 +483,7 @@ def _run_dask(
     with Client(scheduler) as client:
         # pure=False: a rerun must train again, not return a cached result.
         futures = [
-            client.submit(run_task, task, steps=steps, quick=quick, pure=False, key=task.key)
-            for task in tasks
+            client.submit(run_task, task, settings, pure=False, key=task.key) for task in tasks
         ]
         try:
             for future in as_completed(futures):
@@ -394,30 +493,37 @@ def _run_dask(
             raise
 
 
+def _store(out: Path, output: TaskOutput) -> None:
+    """Writes a run's model, then appends its row: a row on disk always has its model."""
+    folder = out / Task.from_row(output.row).model_dir
+    for name, content in output.model.items():
+        atomic_write(folder / name, lambda tmp, content=content: tmp.write_bytes(content))
+    _append_row(out / RESULTS_FILE, output.row)
+
+
 def run_sweep(
     tasks: Iterable[Task],
     *,
     out: Path,
+    settings: SweepSettings | None = None,
     jobs: int | None = None,
     scheduler: str | None = None,
-    steps: int | None = None,
-    quick: bool = False,
     progress: bool = True,
 ) -> list[dict]:
     """Runs the tasks not yet in ``out`` and writes the results.
 
-    Each finished row is appended to ``out/results.jsonl`` at once; tasks whose key is
-    already there are skipped, so an interrupted sweep resumes where it stopped. A folder
-    holds one setting of ``steps`` and ``quick`` (recorded in ``sweep.json``); mixing them is
-    refused. At the end ``results.csv`` and ``summary.md`` cover the given tasks.
+    Each finished run's model goes to ``out/models/...`` (see :attr:`Task.model_dir`) and its
+    row is appended to ``out/results.jsonl`` at once; tasks whose key is already there are
+    skipped, so an interrupted sweep resumes where it stopped. A folder holds the results of
+    one :class:`SweepSettings` (recorded in ``sweep.json``); mixing them is refused. At the
+    end ``results.csv`` and ``summary.md`` cover the given tasks.
 
     Arguments:
         tasks: The runs.
         out: The results folder (created if needed).
+        settings: What the runs share (default: :class:`SweepSettings` ()).
         jobs: Local worker processes (default: all cores; 1 runs in this process).
         scheduler: A Dask scheduler address such as ``tcp://host:8786``; runs there instead.
-        steps: Optimiser steps instead of the default.
-        quick: A smaller stability check.
         progress: Show a progress bar (only on a terminal).
 
     Returns:
@@ -425,6 +531,7 @@ def run_sweep(
     """
     from tqdm.auto import tqdm
 
+    settings = settings or SweepSettings()
     tasks = list(dict.fromkeys(tasks))
     jobs = jobs or os.cpu_count() or 1
     if jobs < 1:
@@ -434,14 +541,13 @@ def run_sweep(
         resolve_motions(task.motion)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    _check_settings(out, {"steps": steps, "quick": quick})
-    results = out / RESULTS_FILE
-    done = _read_results(results)
+    _check_settings(out, settings.to_dict())
+    done = _read_results(out / RESULTS_FILE)
     pending = [task for task in tasks if task.key not in done]
     if scheduler is not None:
-        rows = _run_dask(pending, scheduler=scheduler, steps=steps, quick=quick)
+        outputs = _run_dask(pending, scheduler=scheduler, settings=settings)
     else:
-        rows = _run_local(pending, jobs=jobs, steps=steps, quick=quick)
+        outputs = _run_local(pending, jobs=jobs, settings=settings)
     show = progress and sys.stderr.isatty()
     start = time.perf_counter()
     with tqdm(
@@ -451,8 +557,9 @@ def run_sweep(
         desc="benchmark",
         unit="run",
     ) as bar:
-        for row in rows:
-            _append_row(results, row)
+        for output in outputs:
+            _store(out, output)
+            row = output.row
             done[Task.from_row(row).key] = row
             bar.set_postfix_str(f"{row['motion']}/{row['method']}", refresh=False)
             bar.update()
@@ -462,7 +569,8 @@ def run_sweep(
     seconds = time.perf_counter() - start
     header = (
         f"# Benchmark\n\n{len(tasks)} runs ({len(pending)} new, {seconds:.0f} s); "
-        f"steps {steps or 'default'}, {'quick' if quick else 'full'} stability check.\n\n"
+        f"steps {settings.steps or 'default'}; stability check of {settings.rollouts} "
+        f"rollouts and {settings.samples} decrease samples per run.\n\n"
     )
     atomic_write(out / "summary.md", lambda tmp: tmp.write_text(header + summary))
     return ordered
@@ -478,10 +586,16 @@ def _save(fig, path: Path) -> Path:
 
 
 def plot_benchmark(rows: Sequence[dict], out: Path) -> list[Path]:
-    """Writes ``mse_violin.png`` and ``train_time.png`` into ``out``.
+    """Writes the sweep's figures into ``out``.
 
-    The violins are of log10 of the velocity MSE (paper scale), one per method and motion,
-    with every run drawn as a dot (a violin needs two runs or more).
+    * ``mse_violin.png``: log10 of the velocity MSE (paper scale), one violin per method and
+      motion, every run a dot (a violin needs two runs or more); the paper's Fig. 4.
+    * ``train_time.png``: train seconds, mean and std over seeds.
+    * ``converged.png``: the fraction of random starts that reached the target, mean over
+      seeds with the worst seed marked.
+    * ``streamlines.png``: one row per method, one column per motion, the lowest seed's model
+      (from ``out/models``) with its rollouts; the paper's Fig. 5 and 6. Skipped for runs
+      whose model is not there.
     """
     from matplotlib.figure import Figure
 
@@ -494,17 +608,17 @@ def plot_benchmark(rows: Sequence[dict], out: Path) -> list[Path]:
     def offsets(i: int) -> np.ndarray:
         return np.arange(len(motions)) + (i - (len(methods) - 1) / 2) * width
 
+    def values(motion: str, method: str, key: str) -> np.ndarray:
+        return np.array(
+            [r[key] for r in rows if r["motion"] == motion and r["method"] == method], dtype=float
+        )
+
     fig = Figure(figsize=size, layout="constrained")
     ax = fig.subplots()
     for i, method in enumerate(methods):
         color = f"C{i}"
         for x, motion in zip(offsets(i), motions):
-            values = [
-                r["velocity_mse_paper"]
-                for r in rows
-                if r["motion"] == motion and r["method"] == method
-            ]
-            logs = np.log10(np.clip(np.asarray(values, dtype=float), 1e-12, None))
+            logs = np.log10(np.clip(values(motion, method, "velocity_mse_paper"), 1e-12, None))
             if len(logs) > 1 and np.ptp(logs) > 0:
                 parts = ax.violinplot([logs], positions=[x], widths=0.9 * width, showextrema=False)
                 for body in parts["bodies"]:
@@ -521,16 +635,58 @@ def plot_benchmark(rows: Sequence[dict], out: Path) -> list[Path]:
     fig = Figure(figsize=size, layout="constrained")
     ax = fig.subplots()
     for i, method in enumerate(methods):
-        means, stds = [], []
-        for motion in motions:
-            values = [
-                r["train_seconds"] for r in rows if r["motion"] == motion and r["method"] == method
-            ]
-            means.append(np.mean(values) if values else np.nan)
-            stds.append(np.std(values) if values else np.nan)
+        seconds = [values(motion, method, "train_seconds") for motion in motions]
+        means = [v.mean() if v.size else np.nan for v in seconds]
+        stds = [v.std() if v.size else np.nan for v in seconds]
         ax.bar(offsets(i), means, width=width, yerr=stds, label=method, color=f"C{i}")
     ax.set_xticks(range(len(motions)), motions, rotation=30, ha="right")
     ax.set_ylabel("train seconds (mean ± std over seeds)")
     ax.legend()
     paths.append(_save(fig, out / "train_time.png"))
+
+    fig = Figure(figsize=size, layout="constrained")
+    ax = fig.subplots()
+    for i, method in enumerate(methods):
+        fractions = [values(motion, method, "converged_fraction") for motion in motions]
+        means = [v.mean() if v.size else np.nan for v in fractions]
+        worst = [v.min() if v.size else np.nan for v in fractions]
+        ax.bar(offsets(i), means, width=width, label=method, color=f"C{i}")
+        ax.scatter(offsets(i), worst, marker="_", s=120, color="black", zorder=3)
+    ax.scatter([], [], marker="_", s=120, color="black", label="worst seed")
+    ax.set_xticks(range(len(motions)), motions, rotation=30, ha="right")
+    ax.set_ylim(0, 1.05)
+    ax.set_ylabel("converged fraction of random starts")
+    ax.legend(loc="lower right", fontsize="small")
+    paths.append(_save(fig, out / "converged.png"))
+
+    panels = _panels(rows, out, motions, methods)
+    if any(panel is not None for row in panels for panel in row):
+        from snds.plotting import plot_panels
+
+        paths.append(plot_panels(panels, out / "streamlines.png"))
     return paths
+
+
+def _panels(rows: Sequence[dict], out: Path, motions: list[str], methods: list[str]) -> list:
+    """The streamline panels: the lowest seed's saved model per method (row) and motion."""
+    from snds.io import load_model
+    from snds.plotting import Panel
+    from snds.policy import float64_copy
+
+    grid = []
+    for method in methods:
+        line = []
+        for motion in motions:
+            runs = [r for r in rows if r["motion"] == motion and r["method"] == method]
+            task = Task.from_row(min(runs, key=lambda r: r["seed"])) if runs else None
+            folder = out / task.model_dir if task else None
+            if folder is None or not folder.is_dir():
+                line.append(None)
+                continue
+            policy, _ = load_model(folder)
+            demos = load_lasa(motion)
+            if task.demos is not None:
+                demos = demos.first(task.demos)
+            line.append(Panel(float64_copy(policy), demos, f"{motion} — {method}"))
+        grid.append(line)
+    return grid

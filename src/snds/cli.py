@@ -133,7 +133,15 @@ def _build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--scheduler", default=None, help="Dask scheduler, e.g. tcp://host:8786")
     bench.add_argument("--out", type=Path, default=Path("runs/benchmark"), help="results folder")
     bench.add_argument("--steps", type=int, default=None, help="optimiser steps per run")
-    bench.add_argument("--quick", action="store_true", help="smaller stability check")
+    bench.add_argument(
+        "--rollouts", type=int, default=None, help="random starts of each run's stability check"
+    )
+    bench.add_argument(
+        "--samples", type=int, default=None, help="states of each run's decrease check"
+    )
+    bench.add_argument(
+        "--quick", action="store_true", help="smaller stability check (100 rollouts, 5,000 samples)"
+    )
     bench.set_defaults(run=_benchmark)
     return parser
 
@@ -273,13 +281,22 @@ def _benchmark(args: argparse.Namespace) -> int:
         seeds=args.seeds,
         demos=args.demos,
     )
+    base = (
+        benchmark.SweepSettings.quick(steps=args.steps)
+        if args.quick
+        else benchmark.SweepSettings(steps=args.steps)
+    )
+    settings = benchmark.SweepSettings(
+        steps=args.steps,
+        rollouts=base.rollouts if args.rollouts is None else args.rollouts,
+        samples=base.samples if args.samples is None else args.samples,
+    )
     rows = benchmark.run_sweep(
         tasks,
         out=args.out,
+        settings=settings,
         jobs=args.jobs,
         scheduler=args.scheduler,
-        steps=args.steps,
-        quick=args.quick,
         progress=not args.quiet,
     )
     benchmark.plot_benchmark(rows, args.out)

@@ -12,6 +12,7 @@ with x3..xn held at the target's values; rollouts are projected onto that plane.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import matplotlib
@@ -65,47 +66,108 @@ def plot_streamlines(
     """
     starts = [r[:, 0] for r in (rollouts, perturbed) if r is not None]
     (x1, x2), points = _plane(demos, include=starts)
-    velocity = policy.predict(points)[:, :2].reshape(GRID, GRID, 2)
-    speed = np.linalg.norm(velocity, axis=-1)
-
     fig, ax = _figure(x1, x2)
-    stream = ax.streamplot(
-        x1,
-        x2,
-        velocity[..., 0],
-        velocity[..., 1],
-        color=speed,
-        cmap=STREAM_CMAP,
-        norm=colors.Normalize(0.0, float(np.percentile(speed, 98))),
-        density=1.3,
-        linewidth=0.7,
-        arrowsize=0.7,
-        zorder=1,
-    )
+    stream = _draw_field(ax, policy, x1, x2, points)
     colorbar = fig.colorbar(
         stream.lines, ax=ax, fraction=0.04, pad=0.02, extend="max", extendfrac=0.03
     )
     colorbar.set_label("speed")
     colorbar.outline.set_visible(False)
-    _draw_demos(ax, demos, color=DEMO_COLOR)
-    if rollouts is not None:
-        _draw_rollouts(
-            ax,
-            rollouts,
-            color=ROLLOUT_COLOR,
-            style="-",
-            label="rollout from demo start",
-            starts=False,
-        )
-    if perturbed is not None:
-        _draw_rollouts(
-            ax, perturbed, color=PERTURBED_COLOR, style="--", label="perturbed rollout", starts=True
-        )
-    _draw_target(ax, demos.target)
+    _draw_paths(ax, demos, rollouts, perturbed)
     projected = rollouts is not None or perturbed is not None
     title = title if title is not None else _name(demos, policy)
     _finish(ax, x1, x2, demos.dim, title, projected=projected)
     _legend(fig, ax)
+    return _save(fig, path)
+
+
+@dataclass(frozen=True)
+class Panel:
+    """One panel of :func:`plot_panels`: a policy on its demonstrations.
+
+    Attributes:
+        policy: The policy, float64 and in eval mode.
+        demos: Its demonstrations.
+        title: The panel's title.
+    """
+
+    policy: StablePolicy
+    demos: Demonstrations
+    title: str
+
+
+def plot_panels(
+    rows: Sequence[Sequence[Panel | None]],
+    path: str | Path,
+    *,
+    random_starts: int = 8,
+    seed: int = 0,
+) -> Path:
+    """A grid of streamline panels (the paper's Fig. 5 and 6): one row per method, say.
+
+    Each panel shows the policy's streamlines, the demonstrations, rollouts from the
+    demonstrations' starts (solid) and from ``random_starts`` uniform starts in the view
+    (dashed, the same starts for every panel of a column), each for twice the longest
+    demonstration. A policy that fails shows it: dashed paths that stop short of the target.
+
+    Arguments:
+        rows: The panels, row by row; None leaves a cell empty.
+        path: Where to write the PNG.
+        random_starts: Random starts per panel.
+        seed: Seed of the random starts.
+
+    Returns:
+        The path written.
+    """
+    nrows = len(rows)
+    ncols = max((len(row) for row in rows), default=0)
+    if nrows == 0 or ncols == 0:
+        raise ValueError("plot_panels needs at least one panel")
+    fig = Figure(figsize=(2.9 * ncols, 2.5 * nrows + 0.5), dpi=DPI, layout="constrained")
+    axes = fig.subplots(nrows, ncols, squeeze=False)
+    column_starts: dict[int, np.ndarray] = {}
+    for i, row in enumerate(rows):
+        for j in range(ncols):
+            ax = axes[i, j]
+            panel = row[j] if j < len(row) else None
+            if panel is None:
+                ax.set_axis_off()
+                continue
+            demos, policy = panel.demos, panel.policy
+            (x1, x2), points = _plane(demos)
+            if j not in column_starts:
+                rng = np.random.default_rng(seed + j)
+                starts = np.tile(demos.target, (random_starts, 1))
+                starts[:, 0] = rng.uniform(x1[0], x1[-1], random_starts)
+                starts[:, 1] = rng.uniform(x2[0], x2[-1], random_starts)
+                column_starts[j] = starts
+            dt = demos.mean_dt()
+            steps = int(2 * demos.max_duration() / dt)
+            demo_starts = np.stack([demo.positions[0] for demo in demos])
+            rollouts = rollout_numpy(policy, demo_starts, dt=dt, steps=steps)
+            perturbed = rollout_numpy(policy, column_starts[j], dt=dt, steps=steps)
+            _draw_field(ax, policy, x1, x2, points, density=0.9)
+            _draw_paths(ax, demos, rollouts, perturbed, random_label="rollout from random start")
+            ax.set_aspect("equal")
+            ax.set_xlim(x1[0], x1[-1])
+            ax.set_ylim(x2[0], x2[-1])
+            ax.set_xticks([])
+            ax.set_yticks([])
+            ax.set_title(panel.title, fontsize="medium")
+    handles, labels = [], []
+    for ax in axes.flat:
+        for handle, label in zip(*ax.get_legend_handles_labels()):
+            if label not in labels:
+                handles.append(handle)
+                labels.append(label)
+    fig.legend(
+        handles,
+        labels,
+        loc="outside lower center",
+        ncol=len(labels),
+        frameon=False,
+        fontsize="small",
+    )
     return _save(fig, path)
 
 
@@ -420,6 +482,61 @@ def _figure(x1: np.ndarray | None = None, x2: np.ndarray | None = None):
     ax = fig.add_subplot()
     ax.set_aspect("equal")
     return fig, ax
+
+
+def _draw_field(
+    ax,
+    policy: StablePolicy,
+    x1: np.ndarray,
+    x2: np.ndarray,
+    points: np.ndarray,
+    *,
+    density: float = 1.3,
+):
+    """Streamlines of the policy over the grid, coloured by speed; returns the streamplot."""
+    velocity = policy.predict(points)[:, :2].reshape(len(x2), len(x1), 2)
+    speed = np.linalg.norm(velocity, axis=-1)
+    finite = speed[np.isfinite(speed)]
+    top = float(np.percentile(finite, 98)) if finite.size else 1.0
+    return ax.streamplot(
+        x1,
+        x2,
+        velocity[..., 0],
+        velocity[..., 1],
+        color=speed,
+        cmap=STREAM_CMAP,
+        norm=colors.Normalize(0.0, top if top > 0 else 1.0),
+        density=density,
+        linewidth=0.7,
+        arrowsize=0.7,
+        zorder=1,
+    )
+
+
+def _draw_paths(
+    ax,
+    demos: Demonstrations,
+    rollouts: np.ndarray | None,
+    perturbed: np.ndarray | None,
+    *,
+    random_label: str = "perturbed rollout",
+) -> None:
+    """Demonstrations, rollouts from their starts (solid), other rollouts (dashed), target."""
+    _draw_demos(ax, demos, color=DEMO_COLOR)
+    if rollouts is not None:
+        _draw_rollouts(
+            ax,
+            rollouts,
+            color=ROLLOUT_COLOR,
+            style="-",
+            label="rollout from demo start",
+            starts=False,
+        )
+    if perturbed is not None:
+        _draw_rollouts(
+            ax, perturbed, color=PERTURBED_COLOR, style="--", label=random_label, starts=True
+        )
+    _draw_target(ax, demos.target)
 
 
 def _draw_demos(ax, demos: Demonstrations, *, color: str) -> None:
