@@ -89,3 +89,19 @@ def test_written_files_get_the_usual_mode_not_mkstemp_s_private_one(saved):
     os.umask(umask)
     for path in directory.iterdir():
         assert path.stat().st_mode & 0o777 == 0o666 & ~umask, path.name
+
+
+def test_kind_picks_the_class_and_an_unknown_kind_is_refused(saved):
+    policy, directory = saved
+    description = json.loads((directory / "model.json").read_text())
+    assert (description["kind"], description["method"]) == ("stable", "snds")
+    # A file written before policies had kinds is an SNDS / BC policy.
+    del description["kind"]
+    (directory / "model.json").write_text(json.dumps(description))
+    loaded, _ = load_model(directory)
+    x = torch.randn(100, 2, dtype=torch.float64) * 20
+    assert torch.equal(policy(x), loaded(x))
+    description["kind"] = "gmr"
+    (directory / "model.json").write_text(json.dumps(description))
+    with pytest.raises(ModelFileError, match="unknown policy kind 'gmr'"):
+        load_model(directory)

@@ -1,5 +1,6 @@
 import dataclasses
 
+import numpy as np
 import pytest
 import torch
 
@@ -89,3 +90,29 @@ def test_same_seed_same_policy(spiral):
     a, b = make_policy(spiral, seed=7), make_policy(spiral, seed=7)
     x = torch.randn(10, 2, dtype=torch.float64)
     assert torch.equal(a(x), b(x))
+
+
+def test_a_policy_subclass_gets_units_and_a_default_zero_decay():
+    # GIVEN the smallest Policy: x' = -x in model coordinates, no Lyapunov function
+    from snds.data import Normalization
+    from snds.policy import Policy
+
+    class Contraction(Policy):
+        kind = "contraction"
+
+        def __init__(self, *, dim, normalization):
+            super().__init__(dim=dim, normalization=normalization)
+            self.scale = torch.nn.Parameter(torch.ones(()))
+            self.lyapunov = None
+
+        def field(self, x):
+            return -self.scale * x
+
+    norm = Normalization(center=np.array([1.0, 2.0]), length=4.0, time=0.5)
+    policy = Contraction(dim=2, normalization=norm).double()
+    # THEN user units go in and out: v = -(x - c) / length * (length / time)
+    x = np.array([[5.0, 2.0], [1.0, 0.0]])
+    np.testing.assert_allclose(policy.predict(x), -(x - norm.center) / norm.time)
+    assert not policy.stable and policy.method == "contraction"
+    v = torch.ones(3, dtype=torch.float64)
+    assert torch.equal(policy.decay(v, torch.zeros(3, 2)), torch.zeros(3, dtype=torch.float64))

@@ -25,10 +25,11 @@ from pathlib import Path
 
 import numpy as np
 
-from snds.data import LASA_NAMES, Normalization, load_lasa, split_samples
+from snds.data import LASA_NAMES, load_lasa, split_samples
 from snds.errors import DataError, SNDSError
 from snds.io import atomic_write
 from snds.methods import METHODS, get_method
+from snds.policy import Policy
 
 #: Named groups of LASA motions; ``paper8`` are the eight of the paper's Fig. 4.
 MOTION_GROUPS: dict[str, tuple[str, ...]] = {
@@ -267,7 +268,7 @@ class TaskOutput:
     model: dict[str, bytes]
 
 
-def _model_files(policy, extra: dict) -> dict[str, bytes]:
+def _model_files(policy: Policy, extra: dict) -> dict[str, bytes]:
     import tempfile
 
     from snds.io import save_model
@@ -297,8 +298,6 @@ def run_task(task: Task, settings: SweepSettings) -> TaskOutput:
     import torch
 
     from snds.evaluate import evaluate
-    from snds.policy import StablePolicy
-    from snds.train import TrainConfig, fit
 
     method = get_method(task.method)
     threads = torch.get_num_threads()
@@ -310,20 +309,9 @@ def run_task(task: Task, settings: SweepSettings) -> TaskOutput:
             if task.demos is not None:
                 demos = demos.first(task.demos)
             split = split_samples(demos, test_fraction=0.2, seed=task.seed)
-            config = (
-                TrainConfig(seed=task.seed)
-                if settings.steps is None
-                else TrainConfig(seed=task.seed, steps=settings.steps)
-            )
-            policy = StablePolicy(
-                dim=demos.dim,
-                normalization=Normalization.fit(demos),
-                config=method.policy_config,
-                seed=task.seed,
-            )
-            result = fit(policy, demos, split, config, progress=False)
+            fitted = method.fit(demos, split, seed=task.seed, steps=settings.steps)
             metrics = evaluate(
-                policy,
+                fitted.policy,
                 demos,
                 split,
                 seed=task.seed,
@@ -338,7 +326,7 @@ def run_task(task: Task, settings: SweepSettings) -> TaskOutput:
         "method": task.method,
         "seed": task.seed,
         "demos": task.demos,
-        "train_seconds": result.seconds,
+        "train_seconds": fitted.seconds,
         **{k: float(metrics[k]) for k in ROW_FIELDS if k in metrics},
         **{k: stability[k] for k in ROW_FIELDS if k in stability},
         "peak_memory_mb": memory.peak,
@@ -346,10 +334,9 @@ def run_task(task: Task, settings: SweepSettings) -> TaskOutput:
     extra = {
         "data": {"motion": task.motion, "demos": task.demos},
         "split": {"test_fraction": 0.2, "seed": task.seed, "test_demos": None},
-        "train": config.to_dict(),
-        "train_result": {"seconds": result.seconds, "steps": result.steps},
+        **fitted.record,
     }
-    return TaskOutput(row=row, model=_model_files(policy, extra))
+    return TaskOutput(row=row, model=_model_files(fitted.policy, extra))
 
 
 # ---------------------------------------------------------------------------------------------

@@ -6,7 +6,7 @@ import numpy as np
 
 from snds.data.demonstrations import Demonstrations, Split
 from snds.metrics import dtw, final_distance, frechet, swept_error_area, velocity_mse
-from snds.policy import StablePolicy, float64_copy
+from snds.policy import Policy, float64_copy
 from snds.rollout import rollout_numpy
 from snds.stability import check_stability
 
@@ -17,7 +17,7 @@ def evaluation_demos(split: Split) -> list[int]:
     return held_out or list(range(len(split.train)))
 
 
-def reproduce(policy: StablePolicy, demos: Demonstrations, indices: list[int]) -> list[np.ndarray]:
+def reproduce(policy: Policy, demos: Demonstrations, indices: list[int]) -> list[np.ndarray]:
     """Euler rollouts from the starts of demonstrations, each with its own mean step and length.
 
     Returns:
@@ -32,7 +32,7 @@ def reproduce(policy: StablePolicy, demos: Demonstrations, indices: list[int]) -
     return paths
 
 
-def accuracy(policy: StablePolicy, demos: Demonstrations, split: Split) -> dict[str, float]:
+def accuracy(policy: Policy, demos: Demonstrations, split: Split) -> dict[str, float]:
     """Velocity MSE on the test samples; DTW, Frechet distance, swept error area (2-D only) and
     final distance of the reproductions from the demonstrations' starts.
 
@@ -78,7 +78,7 @@ def accuracy(policy: StablePolicy, demos: Demonstrations, split: Split) -> dict[
 
 
 def evaluate(
-    policy: StablePolicy,
+    policy: Policy,
     demos: Demonstrations,
     split: Split,
     *,

@@ -21,7 +21,7 @@ from safetensors.torch import load_file, save_file
 
 from snds.data.demonstrations import Normalization
 from snds.errors import DataError, ModelFileError
-from snds.policy import PolicyConfig, StablePolicy
+from snds.policy import Policy
 
 #: Version of the model directory layout; a newer one is refused, not guessed at.
 FORMAT_VERSION = 1
@@ -63,8 +63,8 @@ def write_json(path: Path, data: dict) -> None:
     atomic_write(path, write)
 
 
-def save_model(policy: StablePolicy, directory: Path, *, extra: dict | None = None) -> None:
-    """Saves a policy as ``model.safetensors`` + ``model.json`` in ``directory``.
+def save_model(policy: Policy, directory: Path, *, extra: dict | None = None) -> None:
+    """Saves a policy of any method as ``model.safetensors`` + ``model.json`` in ``directory``.
 
     Arguments:
         policy: The policy.
@@ -79,7 +79,8 @@ def save_model(policy: StablePolicy, directory: Path, *, extra: dict | None = No
         "format_version": FORMAT_VERSION,
         "library": "snds",
         "library_version": __version__,
-        "method": "snds" if policy.stable else "bc",
+        "kind": policy.kind,
+        "method": policy.method,
         "dim": policy.dim,
         "dtype": str(next(iter(tensors.values())).dtype).removeprefix("torch."),
         "policy": policy.config.to_dict(),
@@ -116,8 +117,8 @@ def read_description(directory: Path) -> dict:
     return description
 
 
-def load_model(directory: Path) -> tuple[StablePolicy, dict]:
-    """Loads a policy saved by :func:`save_model`.
+def load_model(directory: Path) -> tuple[Policy, dict]:
+    """Loads a policy saved by :func:`save_model`, of the class its ``kind`` names.
 
     Arguments:
         directory: The model directory.
@@ -126,13 +127,21 @@ def load_model(directory: Path) -> tuple[StablePolicy, dict]:
         The policy (in eval mode, in the dtype it was saved in) and the ``model.json`` record.
     """
     directory = Path(directory)
+    from snds.methods import POLICY_KINDS
+
     description = read_description(directory)
-    try:
-        config = PolicyConfig(**description["policy"])
-        normalization = Normalization.from_dict(description["normalization"])
-        policy = StablePolicy(
-            dim=int(description["dim"]), normalization=normalization, config=config
+    # Files of format 1 written before baselines existed carry no kind: an SNDS/BC policy.
+    kind = description.get("kind", "stable")
+    if kind not in POLICY_KINDS:
+        raise ModelFileError(
+            f"{directory / DESCRIPTION}: unknown policy kind {kind!r}; this snds reads "
+            f"{', '.join(POLICY_KINDS)}"
         )
+    cls = POLICY_KINDS[kind]
+    try:
+        config = cls.config_class(**description["policy"])
+        normalization = Normalization.from_dict(description["normalization"])
+        policy = cls(dim=int(description["dim"]), normalization=normalization, config=config)
     except (TypeError, ValueError, DataError) as error:
         raise ModelFileError(
             f"{directory / DESCRIPTION}: invalid architecture ({error})"

@@ -23,7 +23,7 @@ from matplotlib.figure import Figure
 
 from snds.data.demonstrations import Demonstrations
 from snds.io import atomic_write
-from snds.policy import StablePolicy
+from snds.policy import Policy
 from snds.rollout import rollout_numpy
 
 FIGSIZE = (6.0, 4.5)  # plots against time or step
@@ -43,7 +43,7 @@ STREAM_CMAP = colors.LinearSegmentedColormap.from_list(
 
 
 def plot_streamlines(
-    policy: StablePolicy,
+    policy: Policy,
     demos: Demonstrations,
     path: str | Path,
     *,
@@ -91,7 +91,7 @@ class Panel:
         title: The panel's title.
     """
 
-    policy: StablePolicy
+    policy: Policy
     demos: Demonstrations
     title: str
 
@@ -171,7 +171,7 @@ def plot_panels(
     return _save(fig, path)
 
 
-def plot_lyapunov(policy: StablePolicy, demos: Demonstrations, path: str | Path) -> Path:
+def plot_lyapunov(policy: Policy, demos: Demonstrations, path: str | Path) -> Path:
     """Filled contours of the Lyapunov function V with the demonstrations over them.
 
     Arguments:
@@ -248,7 +248,7 @@ def plot_loss(history: list[float], path: str | Path) -> Path:
 
 
 def plot_rollout_lyapunov(
-    policy: StablePolicy,
+    policy: Policy,
     rollouts: np.ndarray,
     dt: float,
     path: str | Path,
@@ -328,7 +328,7 @@ def plot_rollout_lyapunov(
 
 
 def plot_all(
-    policy: StablePolicy,
+    policy: Policy,
     demos: Demonstrations,
     out_dir: str | Path,
     *,
@@ -431,7 +431,7 @@ def _plane(
 
 
 @torch.no_grad()
-def _lyapunov(policy: StablePolicy, points: np.ndarray) -> np.ndarray:
+def _lyapunov(policy: Policy, points: np.ndarray) -> np.ndarray:
     """V at user positions (N, n), in model units."""
     param = next(policy.parameters())
     x = torch.as_tensor(points, dtype=param.dtype, device=param.device)
@@ -439,7 +439,7 @@ def _lyapunov(policy: StablePolicy, points: np.ndarray) -> np.ndarray:
     return v.cpu().numpy()
 
 
-def _require_stable(policy: StablePolicy) -> None:
+def _require_stable(policy: Policy) -> None:
     if not policy.stable:
         raise ValueError(
             "this policy has no Lyapunov function (it was built with stable=False); "
@@ -486,7 +486,7 @@ def _figure(x1: np.ndarray | None = None, x2: np.ndarray | None = None):
 
 def _draw_field(
     ax,
-    policy: StablePolicy,
+    policy: Policy,
     x1: np.ndarray,
     x2: np.ndarray,
     points: np.ndarray,
@@ -626,7 +626,7 @@ def _despine(ax) -> None:
         ax.spines[side].set_visible(False)
 
 
-def _name(demos: Demonstrations, policy: StablePolicy) -> str:
+def _name(demos: Demonstrations, policy: Policy) -> str:
     kind = "stable policy" if policy.stable else "unconstrained policy"
     return f"{demos.name} — {kind}" if demos.name else kind
 

@@ -1,12 +1,16 @@
-r"""Stable policies: a nominal network projected onto the Lyapunov decrease condition.
+r"""Policies: velocity fields in user units; SNDS projects a network onto a Lyapunov decrease.
 
-The guarantee of the library is :func:`project`. Everything else wires networks together.
+:class:`Policy` is what every method of the library learns (SNDS and the baselines): a
+velocity field over normalised model coordinates, with a Lyapunov function where the method
+has one. The guarantee of SNDS is :func:`project`; :class:`StablePolicy` wires networks to it.
 """
 
 from __future__ import annotations
 
 import copy
+from abc import ABC, abstractmethod
 from dataclasses import asdict, dataclass
+from typing import Any, ClassVar, Protocol
 
 import numpy as np
 import torch
@@ -105,7 +109,109 @@ class PolicyConfig:
         return asdict(self)
 
 
-class StablePolicy(nn.Module):
+class LyapunovFunction(Protocol):
+    r"""What a policy's Lyapunov function offers the checks, in model coordinates.
+
+    Attributes:
+        quadratic: A floor :math:`d \ge 0` with :math:`V(x) \ge d \|x\|^2` (0 if none is
+            known); the stability check stops integrating a rollout once it is provably
+            settled in :math:`\{V < d r^2\}`, which needs :math:`d > 0`.
+    """
+
+    quadratic: float
+
+    def value_and_grad(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        """V, shape (*,), and its gradient, shape (*, n), at states (*, n)."""
+        ...
+
+    def __call__(self, x: Tensor) -> Tensor:
+        """V at states (*, n), shape (*,)."""
+        ...
+
+
+class Policy(nn.Module, ABC):
+    r"""A velocity field in user units, computed in the task's model coordinates.
+
+    Model coordinates put the target at 0 with extent 1 and top speed 1 (see
+    :class:`~snds.data.Normalization`); :meth:`forward` maps user positions there, evaluates
+    :meth:`field` and maps the velocities back. A subclass implements :meth:`field`; one
+    with a stability guarantee sets :attr:`lyapunov` to its Lyapunov function and
+    :attr:`stable` to True, and states its guarantee, which the stability checks test:
+    :math:`\nabla V^\top \pi \le -a(x)` with :meth:`decay` :math:`a \ge 0`.
+
+    A subclass is saved and loaded by :mod:`snds.io` from its :attr:`kind`, its ``config``
+    (a frozen dataclass with ``to_dict``, the class in :attr:`config_class`) and its state
+    dict: ``cls(dim=..., normalization=..., config=...)`` must rebuild every tensor shape.
+
+    Arguments:
+        dim: State dimension n.
+        normalization: The task's affine map of space and time.
+    """
+
+    #: Key of the class in :data:`snds.methods.POLICY_KINDS`, written into model.json.
+    kind: ClassVar[str]
+    #: The frozen dataclass of the constructor's ``config``.
+    config_class: ClassVar[type]
+    config: Any
+    # Set by subclasses (a submodule, or None); not a class default, which would shadow the
+    # submodule that nn.Module keeps outside the instance dict.
+    lyapunov: LyapunovFunction | None
+
+    def __init__(self, *, dim: int, normalization: Normalization) -> None:
+        super().__init__()
+        self.dim = dim
+        self.normalization = normalization
+        self.register_buffer("center", torch.tensor(normalization.center, dtype=torch.float32))
+        self.length = normalization.length
+        self.time = normalization.time
+
+    @property
+    def method(self) -> str:
+        """The name of the method that made it (a key of :data:`snds.methods.METHODS`)."""
+        return self.kind
+
+    @property
+    def stable(self) -> bool:
+        """Whether the policy carries a Lyapunov function (and so a guarantee to check)."""
+        return getattr(self, "lyapunov", None) is not None
+
+    @abstractmethod
+    def field(self, x: Tensor) -> Tensor:
+        """The policy in model coordinates, (*, n) -> (*, n)."""
+
+    def nominal(self, x: Tensor) -> Tensor:
+        """The field before any stabilisation, (*, n) -> (*, n); the field itself by default.
+
+        The decrease check scales its rounding tolerance by it (see
+        :func:`snds.stability.decrease_violations`).
+        """
+        return self.field(x)
+
+    def decay(self, v: Tensor, x: Tensor) -> Tensor:
+        """The guaranteed decrease rate a(x) >= 0 of V, shape (*,); 0 by default.
+
+        Arguments:
+            v: V at the states, shape (*,).
+            x: The states in model coordinates, shape (*, n).
+        """
+        return torch.zeros_like(v)
+
+    def to_model(self, x: Tensor) -> Tensor:
+        """User positions (*, n) to model coordinates."""
+        return (x - self.center.to(x.dtype)) / self.length
+
+    def forward(self, x: Tensor) -> Tensor:
+        """Velocities (*, n) in user units at positions (*, n) in user units."""
+        return self.field(self.to_model(x)) * (self.length / self.time)
+
+    @torch.no_grad()
+    def predict(self, x: np.ndarray) -> np.ndarray:
+        """NumPy convenience: velocities at positions (*, n), both in user units."""
+        param = next(self.parameters())
+        return self(torch.as_tensor(x, dtype=param.dtype, device=param.device)).cpu().numpy()
+
+
+class StablePolicy(Policy):
     r"""A velocity field :math:`\pi(x)` in user units that provably reaches the target.
 
     Internally it works in model coordinates (target at 0, extent 1, top speed 1; see
@@ -120,14 +226,15 @@ class StablePolicy(nn.Module):
         seed: Seed of the initial weights.
     """
 
+    kind = "stable"
+    config_class = PolicyConfig
+
     def __init__(
         self, *, dim: int, normalization: Normalization, config: PolicyConfig, seed: int = 0
     ) -> None:
-        super().__init__()
+        super().__init__(dim=dim, normalization=normalization)
         torch.manual_seed(seed)
-        self.dim = dim
         self.config = config
-        self.normalization = normalization
         self.nominal_net = MLP(
             dim,
             dim,
@@ -137,15 +244,19 @@ class StablePolicy(nn.Module):
             fourier_scale=config.fourier_scale,
             seed=seed,
         )
+        # The unconstrained policy (behavioural cloning) keeps V's weights, unused, so that
+        # both variants share one architecture and one file layout.
         self.lyapunov = Lyapunov(
             dim,
             hidden=config.lyapunov_hidden,
             activation=config.lyapunov_activation,
             quadratic=config.quadratic,
         )
-        self.register_buffer("center", torch.tensor(normalization.center, dtype=torch.float32))
-        self.length = normalization.length
-        self.time = normalization.time
+
+    @property
+    def method(self) -> str:
+        """ "snds", or "bc" for the unconstrained variant."""
+        return "snds" if self.stable else "bc"
 
     @property
     def stable(self) -> bool:
@@ -177,21 +288,7 @@ class StablePolicy(nn.Module):
         v, grad_v = self.lyapunov.value_and_grad(x)
         return project(f, grad_v, self.decay(v, x), self.config.rectifier)
 
-    def to_model(self, x: Tensor) -> Tensor:
-        """User positions (*, n) to model coordinates."""
-        return (x - self.center.to(x.dtype)) / self.length
 
-    def forward(self, x: Tensor) -> Tensor:
-        """Velocities (*, n) in user units at positions (*, n) in user units."""
-        return self.field(self.to_model(x)) * (self.length / self.time)
-
-    @torch.no_grad()
-    def predict(self, x: np.ndarray) -> np.ndarray:
-        """NumPy convenience: velocities at positions (*, n), both in user units."""
-        param = next(self.parameters())
-        return self(torch.as_tensor(x, dtype=param.dtype, device=param.device)).cpu().numpy()
-
-
-def float64_copy(policy: nn.Module) -> nn.Module:
+def float64_copy(policy: Policy) -> Policy:
     """A float64 copy of a policy in eval mode, for checks; the original is not changed."""
     return copy.deepcopy(policy).to(torch.float64).eval()

@@ -13,7 +13,7 @@ import numpy as np
 import torch
 
 from snds.data.demonstrations import Demonstrations
-from snds.policy import StablePolicy, float64_copy
+from snds.policy import Policy, float64_copy
 
 
 @dataclass(frozen=True)
@@ -77,7 +77,7 @@ def _uniform_box(
 
 
 @torch.no_grad()
-def decrease_violations(policy: StablePolicy, x: torch.Tensor, *, rtol: float = 1e-9) -> int:
+def decrease_violations(policy: Policy, x: torch.Tensor, *, rtol: float = 1e-9) -> int:
     r"""Counts states where :math:`\nabla V^\top \pi \le -a(x)` fails beyond rounding.
 
     Checked in model coordinates (a positive rescaling of user units, so the sign of the
@@ -102,7 +102,7 @@ def decrease_violations(policy: StablePolicy, x: torch.Tensor, *, rtol: float = 
 
 @torch.no_grad()
 def largest_safe_step(
-    policy: StablePolicy, x: torch.Tensor, *, upper: float, iterations: int = 40
+    policy: Policy, x: torch.Tensor, *, upper: float, iterations: int = 40
 ) -> float:
     r"""The largest Euler step h with :math:`V(x + h \pi(x)) \le V(x)` at every given state.
 
@@ -146,7 +146,7 @@ def largest_safe_step(
 
 @torch.no_grad()
 def check_stability(
-    policy: StablePolicy,
+    policy: Policy,
     demos: Demonstrations,
     *,
     rollouts: int = 1000,
@@ -234,7 +234,7 @@ def check_stability(
 
 
 def _stalled(
-    policy: StablePolicy, ends: torch.Tensor, *, speed: float, extent: float
+    policy: Policy, ends: torch.Tensor, *, speed: float, extent: float
 ) -> tuple[list[dict], int]:
     """Clusters the end points that stalled (spurious attractors); counts those still moving."""
     if len(ends) == 0:
@@ -266,7 +266,7 @@ class _Arrivals:
 
 @torch.no_grad()
 def _roll_out_and_settle(
-    policy: StablePolicy,
+    policy: Policy,
     starts: torch.Tensor,
     target: torch.Tensor,
     *,
