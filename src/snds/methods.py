@@ -7,6 +7,8 @@ stability report, plots, the benchmark) works on any policy.
 
 * ``snds``: the stable policy (nominal network projected onto the Lyapunov decrease).
 * ``bc``: behavioural cloning, the same nominal network, loss and budget, no projection.
+* ``lpvds``, ``seds``: Gaussian-mixture blends of stable linear systems
+  (:mod:`snds.baselines.lpvds`, :mod:`snds.baselines.seds`).
 
 :data:`METHODS` maps names to methods (for the CLI and the benchmark);
 :data:`POLICY_KINDS` maps the ``kind`` written into ``model.json`` to the class that loads it.
@@ -117,6 +119,10 @@ class NeuralMethod(Method):
         return Fitted(policy=policy, seconds=result.seconds, record=record)
 
 
+# The baselines subclass Method and Fitted above, so they are imported once those exist.
+from snds.baselines.lpvds import LPVDS, LPVDSPolicy  # noqa: E402
+from snds.baselines.seds import SEDS, SEDSPolicy  # noqa: E402
+
 METHODS: dict[str, Method] = {
     "snds": NeuralMethod(
         name="snds",
@@ -130,9 +136,15 @@ METHODS: dict[str, Method] = {
         policy_config=PolicyConfig(stable=False),
         has_lyapunov=False,
     ),
+    "lpvds": LPVDS(),
+    "seds": SEDS(),
 }
 
-POLICY_KINDS: dict[str, type[Policy]] = {"stable": StablePolicy}
+POLICY_KINDS: dict[str, type[Policy]] = {
+    "stable": StablePolicy,
+    "lpvds": LPVDSPolicy,
+    "seds": SEDSPolicy,
+}
 
 
 def get_method(name: str) -> Method:

@@ -1,0 +1,232 @@
+"""LPV-DS: the LMIs hold on the stored numbers, it learns stable systems, files round-trip."""
+
+import copy
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from snds.data import Demonstration, Demonstrations, Normalization
+from snds.data.demonstrations import Split, split_samples
+from snds.errors import SNDSError
+from snds.losses import make_samples
+from snds.stability import check_stability
+
+from conftest import spiral_demos
+
+pytest.importorskip("sklearn", reason="LPV-DS needs the baselines extra (scikit-learn)")
+pytest.importorskip("cvxpy", reason="LPV-DS needs the baselines extra (cvxpy)")
+
+from snds.baselines import lpvds  # noqa: E402
+from snds.baselines.lpvds import LPVDS, LPVDSConfig, LPVDSPolicy  # noqa: E402
+from snds.io import load_model, save_model  # noqa: E402
+from snds.methods import METHODS, POLICY_KINDS  # noqa: E402
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():
+    # These models are tiny: one torch thread is faster (as in the CLI and the benchmark),
+    # by far on a busy machine, where a second thread waits for a core at every operation.
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def curved_demos(count: int = 3, samples: int = 300) -> Demonstrations:
+    """Demonstrations of the nonlinear stable system x1' = -x1, x2' = -2 x2 + 3 x1^2.
+
+    Closed form: x1 = a e^-t, x2 = (b + 3 a^2 t) e^-2t; the paths bulge (not linear).
+    """
+    times = np.linspace(0.0, 8.0, samples)
+    demos = []
+    for b in np.linspace(-0.5, 0.5, count):
+        x1 = np.exp(-times)
+        x2 = (b + 3.0 * times) * np.exp(-2.0 * times)
+        x = np.stack([x1, x2], axis=1)
+        v = np.stack([-x1, -2.0 * x2 + 3.0 * x1**2], axis=1)
+        demos.append(Demonstration(positions=x, velocities=v, times=times))
+    return Demonstrations(tuple(demos), np.zeros(2), "curved")
+
+
+def held_out_relative_mse(policy: LPVDSPolicy, demos: Demonstrations, split: Split) -> float:
+    """Velocity MSE on the test samples over their mean squared speed (model coordinates)."""
+    test = make_samples(demos, Normalization.fit(demos), Split(split.test()), window=0)
+    with torch.no_grad():
+        error = ((policy.field(test.positions) - test.velocities) ** 2).sum(-1).mean()
+    return float(error / (test.velocities**2).sum(-1).mean())
+
+
+def lie_derivative_eigenvalues(policy: LPVDSPolicy) -> np.ndarray:
+    """Largest eigenvalue of A_k^T P + P A_k for every k, shape (K,)."""
+    a = policy.matrices.detach().double().numpy()
+    p = policy.lyapunov.matrix.detach().double().numpy()
+    return np.linalg.eigvalsh(np.swapaxes(a, -1, -2) @ p + p @ a).max(-1)
+
+
+@pytest.fixture(scope="module")
+def spiral_split():
+    demos = spiral_demos()
+    return demos, split_samples(demos, test_fraction=0.2, seed=0)
+
+
+@pytest.fixture(scope="module")
+def fitted(spiral_split):
+    demos, split = spiral_split
+    return LPVDS().fit(demos, split, seed=0)
+
+
+@pytest.fixture(scope="module")
+def curved():
+    demos = curved_demos()
+    split = split_samples(demos, test_fraction=0.2, seed=0)
+    return demos, split, LPVDS().fit(demos, split, seed=0)
+
+
+def test_registered_as_a_method_and_a_policy_kind():
+    assert isinstance(METHODS["lpvds"], LPVDS) and METHODS["lpvds"].has_lyapunov
+    assert POLICY_KINDS["lpvds"] is LPVDSPolicy
+
+
+def test_stored_numbers_satisfy_the_lmis(fitted):
+    policy = fitted.policy
+    p = policy.lyapunov.matrix.detach().numpy()
+    np.testing.assert_array_equal(p, p.T)
+    assert np.linalg.eigvalsh(p).min() > 0
+    assert (lie_derivative_eigenvalues(policy) < 0).all()
+    # The decay it promises is the verified margin, no more.
+    assert 0 < float(policy.rate) <= -lie_derivative_eigenvalues(policy).max()
+    assert policy.lyapunov.quadratic == pytest.approx(np.linalg.eigvalsh(p).min())
+
+
+def test_learns_a_linear_spiral_almost_exactly(fitted, spiral_split):
+    demos, split = spiral_split
+    assert held_out_relative_mse(fitted.policy, demos, split) < 0.01
+    record = fitted.record["lpvds"]
+    assert record["components"] >= 1 and record["fallbacks"] == []
+    assert record["systems_program"]["status"] == "optimal"
+
+
+def test_reaches_the_target_from_random_starts(fitted, spiral_split):
+    demos, _ = spiral_split
+    report = check_stability(fitted.policy, demos, rollouts=100, samples=2000, seed=0)
+    assert report.converged_fraction == 1.0
+    assert report.decrease_violations == 0 and report.samples_checked == 2000
+
+
+def test_decrease_and_responsibilities_hold_far_from_the_data(fitted):
+    # GIVEN states up to 1e3 times the data's extent, in float64
+    policy = copy.deepcopy(fitted.policy).to(torch.float64)
+    x = 1e3 * torch.randn(5000, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        gamma = policy.responsibilities(x)
+        v, grad_v = policy.lyapunov.value_and_grad(x)
+        xdot = policy.field(x)
+    # THEN the blend is a convex combination and V decreases at the promised rate
+    assert torch.isfinite(gamma).all() and torch.isfinite(xdot).all()
+    torch.testing.assert_close(gamma.sum(-1), torch.ones(5000, dtype=torch.float64))
+    lhs = (grad_v * xdot).sum(-1)
+    assert (lhs <= -policy.decay(v, x) + 1e-9 * grad_v.norm(dim=-1) * xdot.norm(dim=-1)).all()
+
+
+def test_lyapunov_gradient_matches_autograd(fitted):
+    x = torch.randn(50, 2, dtype=torch.float64, requires_grad=True)
+    v, grad = fitted.policy.lyapunov.value_and_grad(x)
+    (auto,) = torch.autograd.grad(fitted.policy.lyapunov(x).sum(), x)
+    torch.testing.assert_close(grad, auto)
+    torch.testing.assert_close(v, fitted.policy.lyapunov(x))
+
+
+def test_bic_picks_several_components_and_they_fit_a_curved_motion_better(curved):
+    demos, split, auto = curved
+    assert auto.record["lpvds"]["components"] > 1
+    assert (lie_derivative_eigenvalues(auto.policy) < 0).all()
+    single = dataclasses.replace(LPVDS(), components=1).fit(demos, split, seed=0)
+    assert single.record["lpvds"]["components"] == 1
+    auto_error = held_out_relative_mse(auto.policy, demos, split)
+    assert auto_error < 0.05
+    assert auto_error < 0.5 * held_out_relative_mse(single.policy, demos, split)
+
+
+def test_curved_motion_reaches_the_target(curved):
+    demos, _, fitted = curved
+    report = check_stability(fitted.policy, demos, rollouts=100, samples=2000, seed=0)
+    assert report.converged_fraction == 1.0 and report.decrease_violations == 0
+
+
+def test_save_load_round_trip_gives_identical_outputs(curved, tmp_path):
+    _, _, fitted = curved
+    save_model(fitted.policy, tmp_path / "model", extra=fitted.record)
+    loaded, description = load_model(tmp_path / "model")
+    assert isinstance(loaded, LPVDSPolicy) and description["kind"] == "lpvds"
+    assert loaded.config == fitted.policy.config
+    x = torch.randn(200, 2, dtype=torch.float64)
+    with torch.no_grad():
+        torch.testing.assert_close(loaded(x), fitted.policy(x), rtol=0, atol=0)
+    assert loaded.lyapunov.quadratic == fitted.policy.lyapunov.quadratic
+
+
+def test_same_seed_gives_the_same_fit(spiral_split, fitted):
+    demos, split = spiral_split
+    again = LPVDS().fit(demos, split, seed=0)
+    for (name, a), (_, b) in zip(
+        fitted.policy.state_dict().items(), again.policy.state_dict().items()
+    ):
+        torch.testing.assert_close(a, b, rtol=0, atol=0, msg=name)
+
+
+@pytest.mark.parametrize("dim", [1, 3])
+def test_other_dimensions(dim):
+    if dim == 1:
+        times = np.linspace(0.0, 5.0, 200)
+        demos = Demonstrations(
+            tuple(
+                Demonstration(
+                    positions=(s * np.exp(-times))[:, None],
+                    velocities=(-s * np.exp(-times))[:, None],
+                    times=times,
+                )
+                for s in (1.0, -2.0)
+            ),
+            np.zeros(1),
+        )
+    else:
+        demos = spiral_demos(dim=dim)
+    split = split_samples(demos, test_fraction=0.2, seed=0)
+    fitted = dataclasses.replace(LPVDS(), max_components=3).fit(demos, split, seed=0)
+    assert (lie_derivative_eigenvalues(fitted.policy) < 0).all()
+    assert held_out_relative_mse(fitted.policy, demos, split) < 0.01
+    report = check_stability(fitted.policy, demos, rollouts=30, samples=500, seed=0)
+    assert report.converged_fraction == 1.0 and report.decrease_violations == 0
+
+
+def test_a_failed_lyapunov_program_falls_back_to_the_identity(spiral_split, monkeypatch):
+    demos, split = spiral_split
+    monkeypatch.setattr(lpvds, "fit_lyapunov_matrix", lambda *a, **k: (None, {"status": "x"}))
+    fitted = dataclasses.replace(LPVDS(), max_components=2).fit(demos, split, seed=0)
+    assert "P = I" in fitted.record["lpvds"]["fallbacks"]
+    np.testing.assert_array_equal(fitted.policy.lyapunov.matrix.numpy(), np.eye(2))
+    assert (lie_derivative_eigenvalues(fitted.policy) < 0).all()
+
+
+def test_an_unverifiable_solution_is_refused(spiral_split, monkeypatch):
+    # A "solver" whose answer violates the LMIs: every attempt fails the check, so no
+    # policy is returned rather than an unstable one.
+    demos, split = spiral_split
+
+    def unstable(x, v, gamma, p, **kwargs):
+        return np.tile(np.eye(x.shape[1]), (gamma.shape[1], 1, 1)), {"status": "optimal"}
+
+    monkeypatch.setattr(lpvds, "fit_linear_systems", unstable)
+    with pytest.raises(SNDSError, match="stability"):
+        dataclasses.replace(LPVDS(), max_components=2).fit(demos, split, seed=0)
+
+
+def test_unfitted_policy_is_stable_and_rebuilds_from_its_config():
+    norm = Normalization(center=np.zeros(2), length=1.0, time=1.0)
+    policy = LPVDSPolicy(dim=2, normalization=norm, config=LPVDSConfig(components=4))
+    assert policy.matrices.shape == (4, 2, 2) and policy.means.shape == (4, 2)
+    x = torch.randn(10, 2)
+    torch.testing.assert_close(policy(x), -x)
+    assert LPVDSConfig(**policy.config.to_dict()) == policy.config
