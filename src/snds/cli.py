@@ -41,6 +41,23 @@ def _demo_choice(text: str) -> int | list[int]:
     return _index_list(text) if "," in text else _index_list(text)[0]
 
 
+def _push(text: str):
+    from snds.sim import Push
+
+    parts = text.split(",")
+    try:
+        step, *displacement = (float(part) for part in parts)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected STEP,DX,DY,DZ (a step and metres), got {text!r}"
+        ) from None
+    if len(parts) != 4 or step != int(step) or step < 0:
+        raise argparse.ArgumentTypeError(
+            f"expected STEP,DX,DY,DZ with an integer step >= 0, got {text!r}"
+        )
+    return Push(step=int(step), displacement=tuple(displacement))
+
+
 def _data_arguments(parser: argparse.ArgumentParser, *, required: bool) -> None:
     source = parser.add_mutually_exclusive_group(required=required)
     source.add_argument("--motion", help="a LASA handwriting motion, e.g. Sine")
@@ -143,6 +160,69 @@ def _build_parser() -> argparse.ArgumentParser:
         "--quick", action="store_true", help="smaller stability check (100 rollouts, 5,000 samples)"
     )
     bench.set_defaults(run=_benchmark)
+
+    from snds.sim import ROBOTS, SimConfig
+
+    sim = commands.add_parser(
+        "simulate", help="drive a simulated robot arm with a model (PyBullet, headless)"
+    )
+    sim.add_argument("model", type=Path, help="model directory")
+    _data_arguments(sim, required=False)
+    sim.add_argument("--robot", choices=list(ROBOTS), default=SimConfig.robot)
+    sim.add_argument(
+        "--push",
+        type=_push,
+        default=None,
+        help="STEP,DX,DY,DZ: displace the end effector by (DX, DY, DZ) metres at control step STEP",
+    )
+    sim.add_argument(
+        "--scale",
+        type=float,
+        default=None,
+        help="metres per unit of the task (default: fit the motion into the robot's reach)",
+    )
+    sim.add_argument(
+        "--start-demo", type=int, default=0, help="start at this demonstration's first state"
+    )
+    sim.add_argument(
+        "--control-rate", type=float, default=SimConfig.control_rate, help="control loop, Hz"
+    )
+    sim.add_argument(
+        "--time-limit", type=float, default=SimConfig.time_limit, help="seconds of simulation"
+    )
+    sim.add_argument(
+        "--tolerance",
+        type=float,
+        default=SimConfig.tolerance,
+        help="distance to the target (m) at which the run stops",
+    )
+    sim.add_argument(
+        "--frames", type=int, default=6, help="rendered frames in frames.png (0: none)"
+    )
+    sim.add_argument(
+        "--out", type=Path, default=None, help="results folder (default: MODEL/sim-ROBOT)"
+    )
+    sim.set_defaults(run=_simulate)
+
+    export = commands.add_parser(
+        "export", help="export a model for a real-time controller (ONNX or torch.export)"
+    )
+    export.add_argument("model", type=Path, help="model directory")
+    export.add_argument("--format", choices=["onnx", "pt2"], default="onnx")
+    export.add_argument(
+        "--dtype",
+        choices=["float32", "float64"],
+        default="float32",
+        help="precision of the exported graph",
+    )
+    export.add_argument(
+        "--out", type=Path, default=None, help="file (default: MODEL/policy.onnx or .pt2)"
+    )
+    export.add_argument(
+        "--samples", type=int, default=10_000, help="random states of the equality check"
+    )
+    export.add_argument("--seed", type=int, default=0, help="seed of those states")
+    export.set_defaults(run=_export)
     return parser
 
 
@@ -302,6 +382,77 @@ def _benchmark(args: argparse.Namespace) -> int:
     benchmark.plot_benchmark(rows, args.out)
     if not args.quiet:
         print((args.out / "summary.md").read_text(), end="")
+    return 0
+
+
+def _simulate(args: argparse.Namespace) -> int:
+    from snds.sim import SimConfig, simulate
+    from snds.sim.plots import plot_frames, plot_path, render_frames
+
+    policy, _, demos = _model_and_data(args)
+    if not 0 <= args.start_demo < len(demos):
+        raise SNDSError(f"--start-demo {args.start_demo}: there are {len(demos)} demonstrations")
+    config = SimConfig(
+        robot=args.robot,
+        scale=args.scale,
+        control_rate=args.control_rate,
+        time_limit=args.time_limit,
+        tolerance=args.tolerance,
+        push=args.push,
+    )
+    start = demos[args.start_demo].positions[0]
+    result = simulate(policy, start, config)
+    out = args.out or args.model / f"sim-{config.robot}"
+    record = {
+        "model": str(Path(args.model).resolve()),
+        "data": _source(args) if args.motion or args.data else None,
+        "start_demo": args.start_demo,
+        **result.to_dict(),
+    }
+    write_json(out / "sim.json", to_jsonable(record))
+    paths = [plot_path(result, demos, out / "path.png")]
+    if args.frames > 0:
+        frames, steps = render_frames(result, demos, count=args.frames)
+        paths.append(plot_frames(result, frames, steps, out / "frames.png"))
+    if not args.quiet:
+        outcome = (
+            f"reached the target in {result.times[-1]:.2f} s"
+            if result.reached
+            else f"did not reach the target in {result.times[-1]:.2f} s"
+        )
+        line = f"{out}: {outcome}, final error {1000 * result.final_error:.2f} mm"
+        if result.push_time is not None:
+            recovery = (
+                "never recovered"
+                if result.recovery_time is None
+                else f"recovered in {result.recovery_time:.2f} s"
+            )
+            line += f"; pushed at {result.push_time:.2f} s, {recovery}"
+        print(line)
+    return 0
+
+
+def _export(args: argparse.Namespace) -> int:
+    from snds import export
+
+    policy, _ = load_model(args.model)
+    out = args.out or args.model / f"policy.{args.format}"
+    dtype = getattr(torch, args.dtype)
+    path = export.FORMATS[args.format](policy, out, dtype=dtype)
+    check = export.verify(path, policy, samples=args.samples, seed=args.seed)
+    write_json(path.with_name(path.name + ".check.json"), to_jsonable(check.to_dict()))
+    if not check.passed:
+        # A controller must not pick up a model that computes something else.
+        path.unlink(missing_ok=True)
+        raise export.ExportError(
+            f"{path}: outputs differ from the library's by {check.max_error:.2e} "
+            f"(relative), more than {check.tolerance:.0e}"
+        )
+    if not args.quiet:
+        print(
+            f"{path}: {check.samples} random states, largest difference from the library "
+            f"{check.max_error:.2e} (relative; {check.max_abs_diff:.2e} absolute)"
+        )
     return 0
 
 

@@ -1,0 +1,388 @@
+r"""Export of a policy for a real-time controller, and the check that it computes the same.
+
+The exported graph is the policy's own ``forward``: user positions in, user velocities out,
+with the Lyapunov gradient written analytically (:meth:`snds.nn.Lyapunov.value_and_grad`),
+so no autograd is needed or traced. Two formats:
+
+- ONNX (:func:`export_onnx`), run by onnxruntime from any language; the file carries the
+  target, the state dimension and the speed scale in its metadata.
+- ``torch.export`` (:func:`export_pt2`), a ``.pt2`` archive: the graph as JSON and the
+  weights as raw bytes (no pickle for plain tensors), loaded by :func:`torch.export.load`.
+
+:func:`verify` runs an exported file on random states, from near the target to 1000x the
+demonstrations' extent, and compares it with the library evaluated in the same precision.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import math
+import warnings
+import zipfile
+from collections.abc import Callable, Iterator
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from snds.errors import SNDSError
+from snds.io import atomic_write
+from snds.policy import Policy
+
+#: Largest accepted difference from the library, relative to max(|velocity|, top speed) of
+#: each state. float64 graphs agree to rounding (about 1e-13). In float32 the library itself
+#: differs from its float64 value by up to a few 1e-5 of the top speed near the target (the
+#: Bregman form subtracts numbers of order 1 to get V of order 1e-4 there), so two float32
+#: implementations with different operation orders cannot agree more closely than that.
+TOLERANCE = {torch.float64: 1e-5, torch.float32: 1e-4}
+#: Spread of the random states of :func:`random_states`, in units of the demonstrations'
+#: extent: from near the data out to 1000x.
+STATE_RADII = (1.0, 3.0, 10.0, 100.0, 1000.0)
+_NUMPY = {torch.float32: np.float32, torch.float64: np.float64}
+# The files of a .pt2 archive that say, per tensor, whether it is stored pickled.
+_TENSOR_CONFIGS = ("weights_config.json", "constants_config.json")
+
+
+class ExportError(SNDSError):
+    """An export that failed, or whose outputs differ from the library's."""
+
+
+class _Exported(torch.nn.Module):
+    """The policy in a fixed precision and in eval mode: the module that is traced."""
+
+    def __init__(self, policy: Policy, dtype: torch.dtype) -> None:
+        super().__init__()
+        self.policy = _copy(policy, dtype)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.policy(x)
+
+
+def _copy(policy: Policy, dtype: torch.dtype) -> Policy:
+    import copy
+
+    return copy.deepcopy(policy).to(device="cpu", dtype=dtype).eval()
+
+
+def _check_dtype(dtype: torch.dtype) -> None:
+    if dtype not in _NUMPY:
+        raise ExportError(f"export is float32 or float64, not {dtype}")
+
+
+@contextlib.contextmanager
+def _quiet_exporter() -> Iterator[None]:
+    # The ONNX exporter logs a warning per missing optional library (torchvision), and torch
+    # warns about its own deprecated internals: neither is the user's business.
+    logger = logging.getLogger("torch.onnx")
+    level = logger.level
+    logger.setLevel(logging.ERROR)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", FutureWarning)
+            yield
+    finally:
+        logger.setLevel(level)
+
+
+def _trace(policy: Policy, dtype: torch.dtype) -> torch.export.ExportedProgram:
+    module = _Exported(policy, dtype)
+    example = torch.zeros(4, policy.dim, dtype=dtype)
+    batch = torch.export.Dim("batch", min=1)
+    with torch.no_grad():
+        return torch.export.export(module, (example,), dynamic_shapes={"x": {0: batch}})
+
+
+def export_pt2(policy: Policy, path: str | Path, *, dtype: torch.dtype = torch.float32) -> Path:
+    """Exports a policy with ``torch.export`` to a ``.pt2`` archive.
+
+    Arguments:
+        policy: The policy; it is copied, not changed.
+        path: The file to write.
+        dtype: Precision of the graph, its input and its output.
+
+    Returns:
+        The path written. Its program maps positions (B, n) to velocities (B, n), user units.
+    """
+    _check_dtype(dtype)
+    program = _trace(policy, dtype)
+    # Example inputs would be stored with torch.save, a pickle; the program needs none.
+    program.example_inputs = None
+    path = Path(path)
+
+    def write(tmp: Path) -> None:
+        # Through a file object: torch.export.save warns about a file name not ending in .pt2.
+        with open(tmp, "wb") as handle:
+            torch.export.save(program, handle)
+
+    atomic_write(path, write)
+    return path
+
+
+def _softplus_onnx(self, beta: float = 1.0, threshold: float = 20.0):
+    # onnxruntime has Softplus in float32 only; this form is exact in any precision:
+    # softplus(u) = max(u, 0) + log(1 + exp(-|u|)), and u itself above the threshold.
+    from onnxscript import opset18 as op
+
+    scaled = op.Mul(self, op.CastLike(beta, self))
+    tail = op.Log(op.Add(op.CastLike(1.0, self), op.Exp(op.Neg(op.Abs(scaled)))))
+    value = op.Div(op.Add(op.Relu(scaled), tail), op.CastLike(beta, self))
+    return op.Where(op.Greater(scaled, op.CastLike(threshold, self)), self, value)
+
+
+def export_onnx(policy: Policy, path: str | Path, *, dtype: torch.dtype = torch.float32) -> Path:
+    """Exports a policy to ONNX (opset 18), with a dynamic batch dimension.
+
+    Arguments:
+        policy: The policy; it is copied, not changed.
+        path: The file to write.
+        dtype: Precision of the graph, its input and its output.
+
+    Returns:
+        The path written. The graph maps ``x`` (B, n) to velocities (B, n), user units; its
+        metadata holds ``snds.dim``, ``snds.target`` (a JSON list), ``snds.extent`` (the
+        demonstrations' largest distance from the target), ``snds.top_speed`` (user units per
+        second), ``snds.dtype`` and ``snds.method``.
+    """
+    _check_dtype(dtype)
+    try:
+        import onnx
+    except ImportError as error:
+        raise ExportError(
+            "ONNX export needs onnx and onnxscript: pip install 'snds[export]'"
+        ) from error
+    program = _trace(policy, dtype)
+    with _quiet_exporter():
+        onnx_program = torch.onnx.export(
+            program,
+            dynamo=True,
+            optimize=True,
+            verbose=False,
+            custom_translation_table={
+                torch.ops.aten.softplus.default: _softplus_onnx,
+                torch.ops.aten.scalar_tensor.default: _scalar_tensor_onnx,
+            },
+        )
+    model = onnx_program.model_proto
+    metadata = {
+        "snds.dim": str(policy.dim),
+        "snds.target": json.dumps([float(c) for c in policy.normalization.center]),
+        "snds.extent": repr(float(policy.normalization.length)),
+        "snds.top_speed": repr(_top_speed(policy)),
+        "snds.dtype": str(dtype).removeprefix("torch."),
+        "snds.method": policy.method,
+    }
+    for key, value in metadata.items():
+        entry = model.metadata_props.add()
+        entry.key, entry.value = key, value
+    path = Path(path)
+    atomic_write(path, lambda tmp: onnx.save(model, str(tmp)))
+    return path
+
+
+def _scalar_tensor_onnx(
+    s: float, dtype: int = 1, layout: str = "", device: str = "", pin_memory: bool = False
+):
+    # The stock translation makes a float32 constant of the Python number and casts it: a
+    # float64 graph would compute with 2 pi, the decay rates and the normalisation rounded to
+    # float32. Here the constant is made in its own dtype.
+    from onnxscript import ir
+    from onnxscript import opset18 as op
+
+    return op.Constant(value=ir.tensor(np.array(s, dtype=ir.DataType(dtype).numpy())))
+
+
+#: ``snds export --format`` choices.
+FORMATS: dict[str, Callable[..., Path]] = {"onnx": export_onnx, "pt2": export_pt2}
+
+
+def load_onnx(path: str | Path, *, threads: int = 1) -> Callable[[np.ndarray], np.ndarray]:
+    """An onnxruntime session of an exported policy, as a function of NumPy positions.
+
+    Arguments:
+        path: The ``.onnx`` file.
+        threads: Intra-op threads (1 is fastest for one state per call).
+
+    Returns:
+        A function from positions (B, n) to velocities (B, n), in the file's precision.
+    """
+    try:
+        import onnxruntime as ort
+    except ImportError as error:
+        raise ExportError("running ONNX needs onnxruntime: pip install 'snds[export]'") from error
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = threads
+    options.inter_op_num_threads = 1
+    options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    try:
+        session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+    except Exception as error:  # onnxruntime raises its own exception types
+        raise ExportError(f"{path}: not a loadable ONNX model ({error})") from error
+    name = session.get_inputs()[0].name
+    dtype = np.float64 if session.get_inputs()[0].type == "tensor(double)" else np.float32
+
+    def run(x: np.ndarray) -> np.ndarray:
+        return session.run(None, {name: np.asarray(x, dtype=dtype)})[0]
+
+    return run
+
+
+def load_pt2(path: str | Path) -> Callable[[np.ndarray], np.ndarray]:
+    """A ``.pt2`` export as a function of NumPy positions (B, n) -> velocities (B, n).
+
+    :func:`torch.export.load` would unpickle a tensor subclass; an snds export has none
+    (see :func:`pickled_entries`), and this refuses a file that does.
+    """
+    path = Path(path)
+    pickled = pickled_entries(path)
+    if pickled:
+        raise ExportError(f"{path}: holds pickled data ({pickled[0]}); refused")
+    module = torch.export.load(str(path)).module()
+    dtype = next(iter(module.state_dict().values())).dtype
+
+    @torch.no_grad()
+    def run(x: np.ndarray) -> np.ndarray:
+        return module(torch.as_tensor(np.asarray(x), dtype=dtype)).numpy()
+
+    return run
+
+
+def pickled_entries(path: str | Path) -> list[str]:
+    """Entries of a ``.pt2`` archive that would be unpickled on load (an snds export: none).
+
+    Raises:
+        ExportError: If the file is not a ``.pt2`` (zip) archive.
+    """
+    try:
+        with zipfile.ZipFile(path) as archive:
+            names = archive.namelist()
+            configs = [
+                n for n in names if n.endswith(("weights_config.json", "constants_config.json"))
+            ]
+            pickled = []
+            for name in configs:
+                config = json.loads(archive.read(name))
+                for key, entry in config.get("config", {}).items():
+                    if entry.get("use_pickle"):
+                        pickled.append(f"{name}:{key}")
+    except (zipfile.BadZipFile, OSError, json.JSONDecodeError) as error:
+        raise ExportError(f"{path}: not a .pt2 archive ({error})") from error
+    with zipfile.ZipFile(path) as archive:
+        stored = [i.filename for i in archive.infolist() if i.file_size > 0]
+    # torch.save files (.pt: sample inputs, or any pickle) and raw .pkl entries.
+    return pickled + [n for n in stored if n.endswith((".pkl", ".pt"))]
+
+
+def random_states(policy: Policy, count: int, *, seed: int = 0) -> np.ndarray:
+    """Random positions in user units, in boxes around the target of 1 to 1000x the extent.
+
+    Equal shares of the states are drawn uniformly from the boxes of :data:`STATE_RADII`
+    (half-widths, in units of the demonstrations' extent), so a check sees the data region,
+    the space around it and states far beyond it.
+
+    Arguments:
+        policy: Gives the target and the extent.
+        count: Number of states.
+        seed: Seed of the draw.
+
+    Returns:
+        Positions, shape (count, n), float64.
+    """
+    rng = np.random.default_rng(seed)
+    radii = np.asarray(STATE_RADII)[np.arange(count) % len(STATE_RADII)]
+    unit = rng.uniform(-1.0, 1.0, size=(count, policy.dim))
+    center = np.asarray(policy.normalization.center, dtype=float)
+    return center + policy.normalization.length * radii[:, None] * unit
+
+
+@dataclass(frozen=True)
+class Check:
+    """The comparison of an exported model with the library.
+
+    Attributes:
+        path: The exported file.
+        dtype: Its precision.
+        samples: Number of random states.
+        seed: Their seed.
+        max_error: Largest difference relative to max(|library velocity|, top speed), over
+            the states: the criterion.
+        max_abs_diff: Largest absolute difference of a velocity component, user units.
+        max_abs_diff_near: The same over the states within 3x the extent (user units).
+        tolerance: The accepted ``max_error``.
+        passed: Whether ``max_error <= tolerance``.
+    """
+
+    path: str
+    dtype: str
+    samples: int
+    seed: int
+    max_error: float
+    max_abs_diff: float
+    max_abs_diff_near: float
+    tolerance: float
+    passed: bool
+
+    def to_dict(self) -> dict:
+        """JSON-ready form."""
+        return asdict(self)
+
+
+def verify(
+    path: str | Path,
+    policy: Policy,
+    *,
+    samples: int = 10_000,
+    seed: int = 0,
+    tolerance: float | None = None,
+) -> Check:
+    """Runs an exported model on random states and compares it with the library.
+
+    The library is evaluated in the exported file's precision, on the same inputs.
+
+    Arguments:
+        path: An ``.onnx`` or ``.pt2`` file written by this module.
+        policy: The policy it was exported from.
+        samples: Number of states (see :func:`random_states`).
+        seed: Seed of the states.
+        tolerance: Accepted relative difference; :data:`TOLERANCE` of the dtype by default.
+
+    Returns:
+        The comparison.
+    """
+    path = Path(path)
+    run = load_onnx(path) if path.suffix == ".onnx" else load_pt2(path)
+    probe = np.asarray(run(np.zeros((1, policy.dim))))
+    dtype = torch.float64 if probe.dtype == np.float64 else torch.float32
+    states = random_states(policy, samples, seed=seed).astype(_NUMPY[dtype])
+    exported = np.asarray(run(states), dtype=np.float64)
+    reference_policy = _copy(policy, dtype)
+    with torch.no_grad():
+        reference = reference_policy(torch.as_tensor(states)).double().numpy()
+    difference = np.abs(exported - reference)
+    scale = np.maximum(np.linalg.norm(reference, axis=-1), _top_speed(policy))
+    errors = np.linalg.norm(exported - reference, axis=-1) / scale
+    near = np.abs(states - policy.normalization.center).max(axis=-1) <= 3 * (
+        policy.normalization.length
+    )
+    max_error = float(np.max(errors)) if errors.size else 0.0
+    if not np.all(np.isfinite(exported)):
+        max_error = math.inf
+    limit = TOLERANCE[dtype] if tolerance is None else tolerance
+    return Check(
+        path=str(path),
+        dtype=str(dtype).removeprefix("torch."),
+        samples=int(samples),
+        seed=int(seed),
+        max_error=max_error,
+        max_abs_diff=float(difference.max()) if difference.size else 0.0,
+        max_abs_diff_near=float(difference[near].max()) if near.any() else 0.0,
+        tolerance=float(limit),
+        passed=bool(max_error <= limit),
+    )
+
+
+def _top_speed(policy: Policy) -> float:
+    """The normalisation's unit of speed (the demonstrations' top speed), user units/s."""
+    return float(policy.normalization.length / policy.normalization.time)

@@ -1,0 +1,20 @@
+"""Simulation: a learned policy drives a simulated robot arm (PyBullet, headless).
+
+Needs the ``sim`` extra (``pip install 'snds[sim]'``); the Kinova Jaco2 also needs the
+``jaco2`` extra. :func:`simulate` runs one motion; :mod:`snds.sim.plots` draws it.
+"""
+
+from snds.sim.robots import ROBOTS, Robot, SimulationError, get_robot
+from snds.sim.run import Placement, Push, SimConfig, SimResult, simulate
+
+__all__ = [
+    "ROBOTS",
+    "Placement",
+    "Push",
+    "Robot",
+    "SimConfig",
+    "SimResult",
+    "SimulationError",
+    "get_robot",
+    "simulate",
+]

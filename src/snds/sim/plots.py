@@ -1,0 +1,181 @@
+"""Pictures of a simulated run: a strip of rendered frames, and the path against the demos.
+
+Like :mod:`snds.plotting`, every function draws on its own :class:`~matplotlib.figure.Figure`
+(never pyplot) and writes the PNG atomically. Frames come from PyBullet's TinyRenderer,
+which needs no display: the arm is put back at recorded joint positions and photographed,
+with the demonstrations (grey beads), the path so far (orange beads) and the target (green).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from matplotlib.figure import Figure
+
+from snds.data.demonstrations import Demonstrations
+from snds.plotting import (
+    DEMO_COLOR,
+    DPI,
+    PERTURBED_COLOR,
+    ROLLOUT_COLOR,
+    _despine,
+    _draw_demos,
+    _draw_target,
+    _save,
+)
+from snds.sim.arm import Arm
+from snds.sim.robots import get_robot
+from snds.sim.run import SimResult
+
+GREY = (0.55, 0.55, 0.55, 1.0)
+ORANGE = (0.85, 0.28, 0.06, 1.0)
+GREEN = (0.1, 0.65, 0.25, 1.0)
+
+
+def frame_steps(result: SimResult, count: int) -> np.ndarray:
+    """Control steps to photograph: evenly spaced over the run, plus the one after a push."""
+    last = len(result.times) - 1
+    steps = set(np.linspace(0, last, count).round().astype(int).tolist())
+    if result.push_time is not None:
+        pushed = int(np.searchsorted(result.times, result.push_time))
+        nearest = min(steps - {0, last}, key=lambda s: abs(s - pushed), default=None)
+        if nearest is not None:
+            steps.discard(nearest)
+        steps.add(pushed)
+    return np.array(sorted(steps))
+
+
+def render_frames(
+    result: SimResult,
+    demos: Demonstrations | None = None,
+    *,
+    count: int = 6,
+    width: int = 400,
+    height: int = 300,
+) -> tuple[list[np.ndarray], np.ndarray]:
+    """Renders the arm at a few moments of a run.
+
+    Arguments:
+        result: The run.
+        demos: Demonstrations to show in the scene (in the task's units), or None.
+        count: Number of frames (one more may be added to show a push).
+        width: Width of a frame, pixels.
+        height: Height of a frame, pixels.
+
+    Returns:
+        The frames, each (height, width, 3) uint8, and their control steps.
+    """
+    steps = frame_steps(result, count)
+    placement = result.placement
+    with Arm(get_robot(result.config.robot), gravity=False) as arm:
+        arm.add_floor()
+        if demos is not None:
+            for demo in demos:
+                beads = demo.positions[:: max(1, len(demo.positions) // 60)]
+                arm.add_markers(
+                    np.array([placement.to_world(x) for x in beads]), radius=0.004, rgba=GREY
+                )
+        arm.add_markers(placement.origin[None], radius=0.012, rgba=GREEN)
+        frames, shown = [], 0
+        stride = max(1, len(result.times) // 150)
+        for step in steps:
+            trail = result.positions[shown : step + 1 : stride]
+            if len(trail):
+                arm.add_markers(trail, radius=0.006, rgba=ORANGE)
+            shown = step + 1
+            arm.reset(result.joints[step])
+            frames.append(arm.render(width=width, height=height))
+    return frames, steps
+
+
+def plot_frames(result: SimResult, frames: list[np.ndarray], steps: np.ndarray, path) -> Path:
+    """A strip of rendered frames with their times; the frame after a push is marked."""
+    fig = Figure(figsize=(2.2 * len(frames), 2.2 * 0.75 + 0.6), dpi=DPI, layout="constrained")
+    axes = fig.subplots(1, len(frames), squeeze=False)[0]
+    pushed = (
+        None if result.push_time is None else int(np.searchsorted(result.times, result.push_time))
+    )
+    for ax, frame, step in zip(axes, frames, steps):
+        ax.imshow(frame)
+        ax.set_xticks([])
+        ax.set_yticks([])
+        for spine in ax.spines.values():
+            spine.set_visible(False)
+        label = f"t = {result.times[step]:.1f} s"
+        ax.set_title(label + (" (pushed)" if step == pushed else ""), fontsize="small")
+    fig.suptitle(_headline(result), fontsize="medium")
+    return _save(fig, path)
+
+
+def plot_path(result: SimResult, demos: Demonstrations | None, path) -> Path:
+    """The end effector's path in the task's plane against the demonstrations, and its
+    distance to the target over time."""
+    fig = Figure(figsize=(10.0, 4.2), dpi=DPI, layout="constrained")
+    plane, distance = fig.subplots(1, 2, width_ratios=(1.25, 1.0))
+    states = result.states
+    if demos is not None:
+        _draw_demos(plane, demos, color=DEMO_COLOR)
+    pushed = None
+    if result.push_time is not None:
+        pushed = int(np.searchsorted(result.times, result.push_time))
+        before, after = states[pushed - 1], states[pushed]
+        plane.annotate(
+            "",
+            xy=after[:2],
+            xytext=before[:2],
+            arrowprops={"arrowstyle": "->", "color": PERTURBED_COLOR, "lw": 1.5},
+            zorder=5,
+        )
+        plane.plot([], [], color=PERTURBED_COLOR, label="push")
+    segments = [states] if pushed is None else [states[:pushed], states[pushed:]]
+    for i, segment in enumerate(segments):
+        plane.plot(
+            segment[:, 0],
+            segment[:, 1],
+            color=ROLLOUT_COLOR,
+            linewidth=1.6,
+            zorder=4,
+            label="end effector" if i == 0 else None,
+        )
+    _draw_target(plane, result.placement.target)
+    plane.set_aspect("equal", adjustable="datalim")
+    plane.set_xlabel("x1 (task units)")
+    plane.set_ylabel("x2 (task units)")
+    plane.set_title("path in the task's plane")
+    plane.legend(frameon=False, fontsize="small", loc="best")
+    _despine(plane)
+
+    error = np.linalg.norm(result.positions - result.placement.origin, axis=1)
+    distance.semilogy(result.times, np.maximum(error, 1e-6), color=ROLLOUT_COLOR)
+    distance.axhline(result.config.tolerance, color="0.5", linestyle=":", label="tolerance")
+    if result.push_time is not None:
+        distance.axvline(result.push_time, color=PERTURBED_COLOR, linestyle="--", label="push")
+        if result.recovery_time is not None:
+            distance.axvspan(
+                result.push_time,
+                result.push_time + result.recovery_time,
+                color=PERTURBED_COLOR,
+                alpha=0.12,
+                label="recovery",
+            )
+    distance.set_xlabel("time (s)")
+    distance.set_ylabel("distance to target (m)")
+    distance.set_title("distance to the target")
+    distance.legend(frameon=False, fontsize="small")
+    _despine(distance)
+    fig.suptitle(_headline(result), fontsize="medium")
+    return _save(fig, path)
+
+
+def _headline(result: SimResult) -> str:
+    robot = result.config.robot
+    outcome = (
+        f"reached the target in {result.times[-1]:.1f} s"
+        if result.reached
+        else f"stopped at {result.times[-1]:.1f} s"
+    )
+    text = f"{robot}: {outcome}, final error {1000 * result.final_error:.1f} mm"
+    if result.recovery_time is not None:
+        text += f", recovered {result.recovery_time:.2f} s after the push"
+    return text

@@ -1,0 +1,176 @@
+"""Export: the exported graph computes what the library computes, everywhere, in either format."""
+
+from __future__ import annotations
+
+import json
+import runpy
+import sys
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from snds import export
+from snds.cli import main
+from snds.data import Demonstration, Demonstrations
+from snds.io import save_model
+
+from conftest import SMALL, make_policy, spiral_demos
+
+pytest.importorskip("onnxruntime", reason="the export tests need the export extra")
+pytest.importorskip("onnxscript", reason="the export tests need the export extra")
+
+EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "onnx_control_loop.py"
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():
+    # One torch thread, as in the CLI: a control loop evaluates one state at a time, and a
+    # second thread only waits for a core at every operation, more so on a busy machine.
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def shifted_spiral() -> Demonstrations:
+    """The spiral task moved so that its target is off the origin, at (100, -50)."""
+    base = spiral_demos()
+    shift = np.array([100.0, -50.0])
+    moved = tuple(
+        Demonstration(positions=d.positions + shift, velocities=d.velocities, times=d.times)
+        for d in base
+    )
+    return Demonstrations(moved, base.target + shift, "spiral")
+
+
+@pytest.fixture(scope="module")
+def policy():
+    """An untrained float32 stable policy: the export must not depend on training."""
+    return make_policy(shifted_spiral(), config=SMALL, seed=3, dtype=torch.float32).eval()
+
+
+@pytest.fixture(scope="module")
+def onnx64(policy, tmp_path_factory) -> Path:
+    return export.export_onnx(
+        policy, tmp_path_factory.mktemp("onnx") / "policy.onnx", dtype=torch.float64
+    )
+
+
+def test_random_states_reach_far_beyond_the_data(policy) -> None:
+    x = export.random_states(policy, 10_000, seed=0)
+    distance = np.abs(x - policy.normalization.center).max(axis=1) / policy.normalization.length
+    assert x.shape == (10_000, 2)
+    assert distance.min() < 0.05 and distance.max() > 900
+    assert (distance <= 1).mean() > 0.15  # a fair share near the data
+    np.testing.assert_array_equal(x, export.random_states(policy, 10_000, seed=0))
+
+
+def test_float64_onnx_equals_the_library_on_10000_states(policy, onnx64) -> None:
+    # GIVEN a float64 ONNX export, run by onnxruntime, and the library in float64
+    import onnxruntime as ort
+
+    session = ort.InferenceSession(str(onnx64), providers=["CPUExecutionProvider"])
+    x = export.random_states(policy, 10_000, seed=1)
+    # WHEN both evaluate the same 10,000 states, out to 1000x the extent
+    exported = session.run(None, {session.get_inputs()[0].name: x})[0]
+    with torch.no_grad():
+        library = policy.to(torch.float64)(torch.as_tensor(x)).numpy()
+    policy.to(torch.float32)
+    # THEN they agree to 1e-5 of max(|velocity|, top speed) state by state (in fact ~1e-13)
+    scale = np.maximum(np.linalg.norm(library, axis=1), export._top_speed(policy))
+    assert np.all(np.linalg.norm(exported - library, axis=1) / scale <= 1e-5)
+    assert np.isfinite(exported).all()
+
+
+def test_verify_reports_the_check_and_the_metadata(policy, onnx64) -> None:
+    check = export.verify(onnx64, policy, samples=10_000, seed=0)
+    assert check.passed and check.dtype == "float64" and check.samples == 10_000
+    assert check.max_error <= 1e-9
+    import onnx
+
+    meta = {p.key: p.value for p in onnx.load(str(onnx64)).metadata_props}
+    assert json.loads(meta["snds.target"]) == [100.0, -50.0]
+    assert meta["snds.dim"] == "2" and meta["snds.dtype"] == "float64"
+    assert float(meta["snds.extent"]) == pytest.approx(policy.normalization.length)
+
+
+def test_verify_catches_a_model_that_computes_something_else(policy, onnx64) -> None:
+    # GIVEN the export of one policy, checked against a policy with other weights
+    other = make_policy(shifted_spiral(), config=SMALL, seed=4, dtype=torch.float32)
+    check = export.verify(onnx64, other, samples=500)
+    # THEN the check fails
+    assert not check.passed and check.max_error > 1e-3
+
+
+def test_float32_onnx_agrees_to_float32_rounding(policy, tmp_path: Path) -> None:
+    path = export.export_onnx(policy, tmp_path / "p32.onnx", dtype=torch.float32)
+    check = export.verify(path, policy, samples=10_000)
+    assert check.dtype == "float32" and check.passed
+    assert check.max_error <= export.TOLERANCE[torch.float32]
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_pt2_round_trip_is_exact_and_pickle_free(tmp_path: Path, dim: int) -> None:
+    demos = spiral_demos(dim=dim)
+    policy = make_policy(demos, config=SMALL, dtype=torch.float64).eval()
+    path = export.export_pt2(policy, tmp_path / "policy.pt2", dtype=torch.float64)
+    assert export.pickled_entries(path) == []
+    check = export.verify(path, policy, samples=2_000)
+    assert check.passed and check.max_error <= 1e-12
+    # a single state (batch of one) runs through the dynamic batch dimension
+    run = export.load_pt2(path)
+    x = export.random_states(policy, 1, seed=2)
+    with torch.no_grad():
+        np.testing.assert_allclose(run(x), policy(torch.as_tensor(x)).numpy(), rtol=1e-12)
+
+
+def test_pt2_with_a_pickled_entry_is_refused(tmp_path: Path) -> None:
+    policy = make_policy(spiral_demos(), config=SMALL).eval()
+    good = export.export_pt2(policy, tmp_path / "good.pt2")
+    bad = tmp_path / "bad.pt2"
+    with zipfile.ZipFile(good) as source, zipfile.ZipFile(bad, "w") as target:
+        for item in source.infolist():
+            data = source.read(item)
+            if item.filename.endswith("sample_inputs/model.pt"):
+                data = b"\x80\x04pickled"
+            target.writestr(item, data)
+    assert export.pickled_entries(bad)
+    with pytest.raises(export.ExportError, match="pickled"):
+        export.load_pt2(bad)
+
+
+def test_cli_export_writes_the_file_and_its_check(tmp_path: Path, capsys) -> None:
+    policy = make_policy(spiral_demos(), config=SMALL, dtype=torch.float32)
+    save_model(policy, tmp_path / "model")
+    code = main(["export", str(tmp_path / "model"), "--format", "pt2", "--samples", "1000"])
+    assert code == 0
+    check = json.loads((tmp_path / "model" / "policy.pt2.check.json").read_text())
+    assert check["passed"] and check["samples"] == 1000
+    assert "largest difference" in capsys.readouterr().out
+
+
+def test_cli_export_bad_model_dirs_exit_2(tmp_path: Path, capsys) -> None:
+    assert main(["export", str(tmp_path / "missing")]) == 2
+    (tmp_path / "broken").mkdir()
+    (tmp_path / "broken" / "model.json").write_text("{not json")
+    assert main(["export", str(tmp_path / "broken"), "--format", "pt2"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("snds: error:") == 2 and "Traceback" not in err
+
+
+def test_control_loop_example_drives_a_point_to_the_target(onnx64, capsys) -> None:
+    # GIVEN the example loop on a simulated clock, at 200 Hz for 40 s of task time
+    saved = sys.argv
+    sys.argv = [str(EXAMPLE), str(onnx64), "--rate", "200", "--seconds", "40", "--no-sleep"]
+    try:
+        module = runpy.run_path(str(EXAMPLE), run_name="example")
+        summary = module["main"](sys.argv[1:])
+    finally:
+        sys.argv = saved
+    # THEN the point ends near the target, from one extent away
+    assert summary["ticks"] == 8000
+    assert summary["final_distance"] < 1e-3 * summary["start_distance"]
+    assert "missed deadlines" in capsys.readouterr().out
