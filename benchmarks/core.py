@@ -24,6 +24,8 @@ import platform
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
+from _readme import write_readme_section
+
 from snds.benchmark import MOTION_GROUPS, PAPER_SNDS_MSE
 
 PAPER8 = MOTION_GROUPS["paper8"]
@@ -111,20 +113,6 @@ def summarise(rows: list[dict], motions: list[str]) -> str:
     return "\n".join(lines)
 
 
-def _write_readme_section(tag: str, body: str) -> None:
-    readme = HERE / "README.md"
-    text = readme.read_text() if readme.exists() else "# Benchmarks\n"
-    begin, end = f"<!-- {tag}:begin -->", f"<!-- {tag}:end -->"
-    block = f"{begin}\n{body}\n{end}"
-    if begin in text and end in text:
-        text = text[: text.index(begin)] + block + text[text.index(end) + len(end) :]
-    else:
-        text = text.rstrip() + "\n\n" + block + "\n"
-    tmp = readme.with_suffix(".md.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, readme)
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--motions", nargs="+", default=list(PAPER8))
@@ -164,7 +152,7 @@ def main() -> None:
             f"Measured {meta['date']} on {meta['machine']}; {args.jobs} runs side by side, "
             f"one torch thread each; {args.seeds} seeds; overrides {overrides or 'none'}."
         )
-        _write_readme_section(name, header + "\n\n" + table)
+        write_readme_section(name, header + "\n\n" + table)
 
 
 if __name__ == "__main__":

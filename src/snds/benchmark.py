@@ -426,6 +426,7 @@ def summarise(rows: Sequence[dict]) -> str:
             f"| {PAPER_SNDS_MSE[motion] if motion in PAPER_SNDS_MSE else '-'} "
             f"| {stat(group, 'dtw_paper', '.4f')} | {stat(group, 'train_seconds', '.1f')} "
             f"| {stat(group, 'converged_fraction', '.3f')} "
+            f"(min {min(r['converged_fraction'] for r in group):.3f}) "
             f"| {violations if checked else 'n/a (no V)'} |"
         )
     lines += ["", f"Total decrease violations: {total}."]

@@ -1,0 +1,22 @@
+"""Writes a block of benchmarks/README.md between `<!-- TAG:begin -->` and `:end` markers."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+README = Path(__file__).resolve().parent / "README.md"
+
+
+def write_readme_section(tag: str, body: str, readme: Path = README) -> None:
+    """Replaces the block of ``tag`` (or appends it), through a temporary file and a rename."""
+    text = readme.read_text() if readme.exists() else "# Benchmarks\n"
+    begin, end = f"<!-- {tag}:begin -->", f"<!-- {tag}:end -->"
+    block = f"{begin}\n{body}\n{end}"
+    if begin in text and end in text:
+        text = text[: text.index(begin)] + block + text[text.index(end) + len(end) :]
+    else:
+        text = text.rstrip() + "\n\n" + block + "\n"
+    tmp = readme.with_suffix(".md.tmp")
+    tmp.write_text(text)
+    os.replace(tmp, readme)
