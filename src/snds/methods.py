@@ -9,6 +9,8 @@ stability report, plots, the benchmark) works on any policy.
 * ``bc``: behavioural cloning, the same nominal network, loss and budget, no projection.
 * ``lpvds``, ``seds``: Gaussian-mixture blends of stable linear systems
   (:mod:`snds.baselines.lpvds`, :mod:`snds.baselines.seds`).
+* ``sdsef``: Euclideanizing flows, a learned diffeomorphism pulling back a linear latent
+  system (:mod:`snds.baselines.sdsef`).
 
 :data:`METHODS` maps names to methods (for the CLI and the benchmark);
 :data:`POLICY_KINDS` maps the ``kind`` written into ``model.json`` to the class that loads it.
@@ -121,6 +123,7 @@ class NeuralMethod(Method):
 
 # The baselines subclass Method and Fitted above, so they are imported once those exist.
 from snds.baselines.lpvds import LPVDS, LPVDSPolicy  # noqa: E402
+from snds.baselines.sdsef import SDSEF, SDSEFPolicy  # noqa: E402
 from snds.baselines.seds import SEDS, SEDSPolicy  # noqa: E402
 
 METHODS: dict[str, Method] = {
@@ -138,12 +141,14 @@ METHODS: dict[str, Method] = {
     ),
     "lpvds": LPVDS(),
     "seds": SEDS(),
+    "sdsef": SDSEF(),
 }
 
 POLICY_KINDS: dict[str, type[Policy]] = {
     "stable": StablePolicy,
     "lpvds": LPVDSPolicy,
     "seds": SEDSPolicy,
+    "sdsef": SDSEFPolicy,
 }
 
 

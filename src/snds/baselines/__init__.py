@@ -6,6 +6,8 @@
   program.
 * :mod:`snds.baselines.seds`: SEDS (Khansari-Zadeh & Billard, T-RO 2011), Gaussian mixture
   regression whose every component is a stable linear system.
+* :mod:`snds.baselines.sdsef`: SDS-EF (Rana et al., L4DC 2020), a learned diffeomorphism
+  (coupling layers on random Fourier features) that pulls back a linear latent system.
 
 Their optional dependencies (scikit-learn, cvxpy) are imported only when a fit runs
 (``pip install 'snds[baselines]'``); loading and evaluating a saved model needs neither.

@@ -1,0 +1,509 @@
+r"""SDS-EF: stable dynamical systems through Euclideanizing flows (Rana et al., L4DC 2020).
+
+A learned diffeomorphism :math:`\phi: \mathbb{R}^n \to \mathbb{R}^n` maps the state into a
+latent space where the motion is a straight, exponentially converging line,
+:math:`\dot z = -k (z - z^*)` with :math:`z^* = \phi(x^*)`. Pulled back through the flow this
+is the paper's natural-gradient system
+
+.. math:: \dot x = -k(x) \, J_\phi(x)^{-1} \big(\phi(x) - \phi(x^*)\big),
+
+whose Lyapunov function is :math:`V(x) = \|\phi(x) - \phi(x^*)\|^2`:
+:math:`\dot V = 2 (\phi(x) - \phi(x^*))^\top J_\phi \dot x = -2 k(x) V(x)`.
+
+:math:`\phi` is a stack of affine coupling layers (Dinh et al., RealNVP) whose log-scale and
+translation are linear functions of random Fourier features of the conditioning coordinates,
+the paper's choice. Every layer's Jacobian is block triangular, so the Jacobian solve and
+:math:`\nabla V = 2 J_\phi^\top (\phi(x) - \phi(x^*))` are written analytically, one cheap
+triangular step per layer, with no autograd (checked against autograd in the tests).
+
+Everything here is in the task's model coordinates, where the target is the origin.
+
+Reference: M. A. Rana, A. Li, D. Fox, B. Boots, F. Ramos, N. Ratliff, "Euclideanizing Flows:
+Diffeomorphic Reduction for Learning Stable Dynamical Systems", L4DC 2020.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field, replace
+
+import torch
+from torch import Tensor, nn
+
+from snds.data.demonstrations import Demonstrations, Normalization, Split
+from snds.errors import DataError
+from snds.methods import Fitted, Method
+from snds.policy import Policy
+from snds.train import TrainConfig
+
+
+@dataclass(frozen=True, kw_only=True)
+class SDSEFConfig:
+    r"""Architecture of an SDS-EF policy; saved beside its weights.
+
+    Attributes:
+        layers: Number of affine coupling layers of :math:`\phi`.
+        features: Random Fourier features per coupling layer (the paper: a linear layer on
+            fixed random features of the conditioning coordinates).
+        fourier_scale: Standard deviation of the random frequencies, in cycles per unit of
+            model coordinates (the demonstrations span about [-1, 1]).
+        max_log_scale: Bound S on each layer's log-scale, :math:`s = S \tanh(\cdot / S)`, so
+            every layer stretches a coordinate by at most :math:`e^{\pm S}`; 0 gives additive
+            (volume-preserving, NICE-style) couplings :math:`y_b = x_b + t(x_a)`.
+        speed_features: Random Fourier features of a learned state-dependent gain
+            :math:`k(x) = k_0 \exp(b \tanh(w^\top h(x) / b))` (0: a constant learned
+            :math:`k_0`, the plain latent system).
+        speed_scale: Standard deviation of the gain's random frequencies, cycles per unit.
+        speed_range: b, the bound on the log of the gain's variation around :math:`k_0`.
+        gain: Initial :math:`k_0`, per unit of model time.
+    """
+
+    layers: int = 10
+    features: int = 64
+    fourier_scale: float = 0.5
+    max_log_scale: float = 2.0
+    speed_features: int = 64
+    speed_scale: float = 0.5
+    speed_range: float = 2.0
+    gain: float = 1.0
+
+    def __post_init__(self) -> None:
+        if self.layers < 1 or self.features < 1 or self.speed_features < 0:
+            raise ValueError("need layers >= 1, features >= 1 and speed_features >= 0")
+        if not (self.fourier_scale > 0 and self.speed_scale > 0 and self.max_log_scale >= 0):
+            raise ValueError("need fourier_scale > 0, speed_scale > 0 and max_log_scale >= 0")
+        if not (self.speed_range > 0 and self.gain > 0):
+            raise ValueError("speed_range and gain must be positive")
+
+    def to_dict(self) -> dict:
+        """JSON-ready form."""
+        return asdict(self)
+
+
+@dataclass
+class _LayerCache:
+    """What a coupling layer's Jacobian needs from its forward pass (B rows)."""
+
+    stretched: Tensor  # (B, n) x * exp(s), x the layer's input
+    sin: Tensor  # (B, m) sin of the Fourier angles
+    stretch: Tensor  # (B, n) exp(s), 1 on the conditioning coordinates
+    slope: Tensor  # (B, n) ds/d(raw s) = 1 - tanh^2
+
+
+class RFFCoupling(nn.Module):
+    r"""One affine coupling layer with random-Fourier-feature conditioners.
+
+    A fixed split of the coordinates into a conditioning part :math:`x_a` (kept) and a
+    transformed part :math:`x_b`:
+
+    .. math::
+
+        y_a = x_a, \qquad y_b = x_b \odot e^{s(x_a)} + t(x_a), \qquad
+        [s_{raw}, t] = h(x_a) W + c, \qquad s = S \tanh(s_{raw} / S),
+
+    with :math:`h(u) = \sqrt{2/m} \cos(2 \pi u \Omega + \beta)`, :math:`\Omega` and
+    :math:`\beta` fixed random buffers. Its inverse is :math:`x_b = (y_b - t(y_a)) \odot
+    e^{-s(y_a)}`, so the layer is a bijection of :math:`\mathbb{R}^n` onto itself (for any
+    weights), and its Jacobian is block lower triangular with a positive diagonal
+    :math:`e^{s}`:
+
+    .. math:: J = \begin{pmatrix} I & 0 \\ C & \mathrm{diag}(e^s) \end{pmatrix}, \qquad
+        C = \mathrm{diag}(x_b \odot e^s) \, \partial s / \partial x_a
+            + \partial t / \partial x_a.
+
+    The split is written with masks rather than gathers (fewer, larger tensor operations):
+    the rows of :math:`\Omega` for :math:`x_b` are zero, so :math:`h` sees only :math:`x_a`,
+    and s and t are zeroed on :math:`x_a`. W starts at zero, so the layer starts as the
+    identity.
+
+    Arguments:
+        dim: State dimension n >= 2.
+        layer: Index of the layer; the split rotates the coordinates by it, so that in a
+            stack every coordinate is both transformed and conditioned on.
+        features: m, the number of random features.
+        scale: Standard deviation of :math:`\Omega`, in cycles per unit.
+        max_log_scale: S (0: additive coupling, s = 0).
+        generator: Source of the random buffers.
+    """
+
+    def __init__(
+        self,
+        dim: int,
+        layer: int,
+        *,
+        features: int,
+        scale: float,
+        max_log_scale: float,
+        generator: torch.Generator,
+    ) -> None:
+        super().__init__()
+        conditioning = torch.roll(torch.arange(dim), -layer)[: dim // 2]
+        mask = torch.zeros(dim)
+        mask[conditioning] = 1.0
+        # Derived from (dim, layer), so not saved: a model file rebuilds it from the config.
+        self.register_buffer("transformed", 1.0 - mask, persistent=False)
+        self.dim = dim
+        self.max_log_scale = max_log_scale
+        self.affine = max_log_scale > 0
+        frequencies = torch.randn(dim, features, generator=generator) * (2 * math.pi * scale)
+        self.register_buffer("frequencies", frequencies * mask.unsqueeze(-1))
+        self.register_buffer("phases", torch.rand(features, generator=generator) * 2 * math.pi)
+        self.amplitude = math.sqrt(2.0 / features)
+        # Columns [0, n) give s_raw and [n, 2n) give t (only t, n columns, if additive);
+        # those of x_a are masked out (and so get no gradient).
+        outputs = 2 * dim if self.affine else dim
+        self.weight = nn.Parameter(torch.zeros(features, outputs))
+        self.bias = nn.Parameter(torch.zeros(outputs))
+
+    def _conditioner(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """s, t (each (B, n), zero on x_a), the slope 1 - tanh^2 of s (B, n) and sin of the
+        angles (B, m)."""
+        # Masking W's columns (not the (B, n) outputs) zeroes s and t on x_a at the cost of
+        # one small product per call, and those columns then get no gradient.
+        columns = self._columns()
+        angles = torch.addmm(self.phases, x, self.frequencies)
+        raw = torch.addmm(
+            self.bias * columns, torch.cos(angles), self.weight * columns, alpha=self.amplitude
+        )
+        if not self.affine:
+            return torch.zeros_like(x), raw, torch.zeros_like(x), torch.sin(angles)
+        squashed = torch.tanh(raw[:, : self.dim] / self.max_log_scale)
+        return (
+            self.max_log_scale * squashed,
+            raw[:, self.dim :],
+            1.0 - squashed * squashed,
+            torch.sin(angles),
+        )
+
+    def forward(self, x: Tensor) -> tuple[Tensor, _LayerCache]:
+        """Maps states (B, n) to (B, n) and keeps what the Jacobian needs."""
+        s, t, slope, sin = self._conditioner(x)
+        stretch = torch.exp(s)
+        stretched = x * stretch
+        return stretched + t, _LayerCache(stretched, sin, stretch, slope)
+
+    def inverse(self, y: Tensor) -> Tensor:
+        """The inverse map, (B, n) -> (B, n): :math:`x_b = (y_b - t(y_a)) e^{-s(y_a)}`."""
+        s, t, _, _ = self._conditioner(y)
+        return (y - t) * torch.exp(-s)
+
+    def _c_times(self, cache: _LayerCache, w: Tensor) -> Tensor:
+        """C w_a, shape (B, n), zero on x_a; only w_a matters (Omega's x_b rows are zero)."""
+        d_features = cache.sin * (w @ self.frequencies)
+        d_raw = (d_features @ self.weight) * (-self.amplitude * self._columns())
+        if not self.affine:
+            return d_raw
+        return cache.stretched * cache.slope * d_raw[:, : self.dim] + d_raw[:, self.dim :]
+
+    def _columns(self) -> Tensor:
+        """Mask of W's columns that act on x_b, shape (2n,), or (n,) if additive."""
+        if not self.affine:
+            return self.transformed
+        return torch.cat([self.transformed, self.transformed])
+
+    def jvp(self, cache: _LayerCache, w: Tensor) -> Tensor:
+        """J w for tangents w (B, n) at the layer's input: :math:`(w_a, e^s w_b + C w_a)`."""
+        return cache.stretch * w + self._c_times(cache, w)
+
+    def solve(self, cache: _LayerCache, v: Tensor) -> Tensor:
+        r"""J^{-1} v for v (B, n) by forward substitution: :math:`w_a = v_a`,
+        :math:`w_b = e^{-s} (v_b - C v_a)`."""
+        return (v - self._c_times(cache, v)) / cache.stretch
+
+    def vjp(self, cache: _LayerCache, g: Tensor) -> Tensor:
+        r"""J^T g for cotangents g (B, n): :math:`(g_a + C^\top g_b, e^s g_b)`."""
+        grad_raw = torch.cat([g * cache.stretched * cache.slope, g], -1) if self.affine else g
+        weight = self.weight * (-self.amplitude * self._columns())
+        d_features = cache.sin * (grad_raw @ weight.T)
+        return cache.stretch * g + d_features @ self.frequencies.T
+
+
+class EuclideanizingFlow(nn.Module):
+    r"""The diffeomorphism :math:`\phi = \ell_L \circ \dots \circ \ell_1` of coupling layers.
+
+    With :math:`J = J_L \cdots J_1` (each :math:`J_l` at the layer's own input),
+    :math:`J^{-1} v = J_1^{-1} \cdots J_L^{-1} v` and :math:`J^\top g = J_1^\top \cdots
+    J_L^\top g` are one triangular step per layer, from the last to the first.
+    :math:`\det J = \prod_l \prod e^{s_l} > 0` everywhere.
+
+    Arguments:
+        dim: State dimension n >= 2.
+        config: The architecture.
+        seed: Seed of the random Fourier buffers.
+    """
+
+    def __init__(self, dim: int, config: SDSEFConfig, seed: int = 0) -> None:
+        super().__init__()
+        generator = torch.Generator().manual_seed(seed)
+        self.layers = nn.ModuleList(
+            RFFCoupling(
+                dim,
+                layer,
+                features=config.features,
+                scale=config.fourier_scale,
+                max_log_scale=config.max_log_scale,
+                generator=generator,
+            )
+            for layer in range(config.layers)
+        )
+
+    def forward_with_caches(self, x: Tensor) -> tuple[Tensor, list[_LayerCache]]:
+        """:math:`\\phi(x)` for states (B, n), and each layer's Jacobian cache."""
+        caches = []
+        for layer in self.layers:
+            x, cache = layer(x)
+            caches.append(cache)
+        return x, caches
+
+    def forward(self, x: Tensor) -> Tensor:
+        """:math:`\\phi(x)`, (B, n) -> (B, n)."""
+        return self.forward_with_caches(x)[0]
+
+    def inverse(self, y: Tensor) -> Tensor:
+        r""":math:`\phi^{-1}(y)`, (B, n) -> (B, n)."""
+        for layer in reversed(self.layers):
+            y = layer.inverse(y)
+        return y
+
+    def solve(self, caches: list[_LayerCache], v: Tensor) -> Tensor:
+        """:math:`J_\\phi^{-1} v` for v (B, n), with the caches of :meth:`forward_with_caches`."""
+        for layer, cache in zip(reversed(self.layers), reversed(caches)):
+            v = layer.solve(cache, v)
+        return v
+
+    def vjp(self, caches: list[_LayerCache], g: Tensor) -> Tensor:
+        """:math:`J_\\phi^\\top g` for g (B, n)."""
+        for layer, cache in zip(reversed(self.layers), reversed(caches)):
+            g = layer.vjp(cache, g)
+        return g
+
+    def jvp(self, caches: list[_LayerCache], w: Tensor) -> Tensor:
+        """:math:`J_\\phi w` for w (B, n)."""
+        for layer, cache in zip(self.layers, caches):
+            w = layer.jvp(cache, w)
+        return w
+
+    def jacobian(self, x: Tensor) -> Tensor:
+        """The full Jacobian :math:`J_\\phi(x)`, shape (B, n, n), from n Jacobian-vector
+        products (for tests and analysis; the policy never forms it)."""
+        _, caches = self.forward_with_caches(x)
+        eye = torch.eye(x.shape[-1], dtype=x.dtype, device=x.device)
+        columns = [self.jvp(caches, e.expand_as(x)) for e in eye]
+        return torch.stack(columns, dim=-1)
+
+
+class FlowLyapunov(nn.Module):
+    r""":math:`V(x) = \|\phi(x) - \phi(0)\|^2` and its analytic gradient.
+
+    :math:`V(0) = 0` and :math:`V > 0` elsewhere since :math:`\phi` is injective; it is
+    radially unbounded since :math:`\phi` is proper (each layer has bounded s and t, so
+    :math:`\|y\| \to \infty` as :math:`\|x\| \to \infty`). It is not convex, and no quadratic
+    floor :math:`V \ge d \|x\|^2` is known for it (the coupling Jacobians are not bounded
+    globally), hence :attr:`quadratic` = 0.
+
+    Arguments:
+        flow: The diffeomorphism :math:`\phi`.
+    """
+
+    quadratic: float = 0.0
+
+    def __init__(self, flow: EuclideanizingFlow) -> None:
+        super().__init__()
+        self.flow = flow
+
+    def latent(self, x: Tensor) -> tuple[Tensor, list[_LayerCache]]:
+        r""":math:`e = \phi(x) - \phi(0)` for states (B, n), with a zero last row added.
+
+        The target goes through the flow in the same batch as the states, so that a state at
+        exactly the target gets exactly :math:`e = 0`.
+
+        Returns:
+            e with the target's row last, shape (B + 1, n), and the layers' caches.
+        """
+        y, caches = self.flow.forward_with_caches(torch.cat([x, x.new_zeros(1, x.shape[-1])]))
+        return y - y[-1:], caches
+
+    def value_and_grad(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        r""":math:`V` and :math:`\nabla V = 2 J_\phi^\top (\phi(x) - \phi(0))`, analytically.
+
+        Arguments:
+            x: States in model coordinates, shape (*, n).
+
+        Returns:
+            V, shape (*,), and its gradient, shape (*, n).
+        """
+        flat = x.reshape(-1, x.shape[-1])
+        e, caches = self.latent(flat)
+        grad = 2.0 * self.flow.vjp(caches, e)[:-1]
+        return (e[:-1] * e[:-1]).sum(-1).reshape(x.shape[:-1]), grad.reshape(x.shape)
+
+    def forward(self, x: Tensor) -> Tensor:
+        """V at states (*, n), shape (*,)."""
+        flat = x.reshape(-1, x.shape[-1])
+        e = self.flow(torch.cat([flat, flat.new_zeros(1, flat.shape[-1])]))
+        e = e[:-1] - e[-1:]
+        return (e * e).sum(-1).reshape(x.shape[:-1])
+
+
+class SpeedGain(nn.Module):
+    r"""A positive gain :math:`k(x) = k_0 \exp(b \tanh(w^\top h(x) / b))` of the latent system.
+
+    :math:`h` are random Fourier features of the state; with none, :math:`k = k_0`. The gain
+    lies in :math:`[k_0 e^{-b}, k_0 e^{b}]` for any weights, so the latent decrease rate never
+    vanishes. It only rescales the speed along the flow's straight latent lines, never their
+    direction, so it leaves :math:`V` and the guarantee unchanged.
+
+    Arguments:
+        dim: State dimension n.
+        config: The architecture.
+        generator: Source of the random buffers.
+    """
+
+    def __init__(self, dim: int, config: SDSEFConfig, generator: torch.Generator) -> None:
+        super().__init__()
+        self.log_gain = nn.Parameter(torch.tensor(math.log(config.gain)))
+        self.range = config.speed_range
+        m = config.speed_features
+        self.amplitude = math.sqrt(2.0 / m) if m else 0.0
+        frequencies = torch.randn(dim, m, generator=generator) * (2 * math.pi * config.speed_scale)
+        self.register_buffer("frequencies", frequencies)
+        self.register_buffer("phases", torch.rand(m, generator=generator) * 2 * math.pi)
+        self.weight = nn.Parameter(torch.zeros(m))
+
+    def lower_bound(self) -> Tensor:
+        """The smallest gain any state can get, :math:`k_0 e^{-b}` (a scalar)."""
+        return torch.exp(self.log_gain - self.range)
+
+    def forward(self, x: Tensor) -> Tensor:
+        """k at states (B, n), shape (B,)."""
+        if self.weight.numel() == 0:
+            return torch.exp(self.log_gain).expand(x.shape[0])
+        features = self.amplitude * torch.cos(x @ self.frequencies + self.phases)
+        return torch.exp(
+            self.log_gain + self.range * torch.tanh(features @ self.weight / self.range)
+        )
+
+
+class SDSEFPolicy(Policy):
+    r"""SDS-EF: the natural-gradient flow of a learned diffeomorphism, in user units.
+
+    In model coordinates (target at 0),
+
+    .. math:: \pi(x) = -k(x) \, J_\phi(x)^{-1} \big(\phi(x) - \phi(0)\big), \qquad
+        V(x) = \|\phi(x) - \phi(0)\|^2,
+
+    with :math:`\phi` an :class:`EuclideanizingFlow` and :math:`k > 0` a :class:`SpeedGain`.
+
+    **Guarantee.** :math:`\nabla V^\top \pi = 2 (\phi - \phi_0)^\top J_\phi \pi = -2 k(x) V(x)
+    < 0` away from the target, and :math:`\phi` is a bijection of :math:`\mathbb{R}^n` onto
+    itself (every coupling layer is), so :math:`V` is positive definite and radially
+    unbounded: the system is globally asymptotically stable at the target, for any weights,
+    with :math:`V(t) \le V(0) e^{-2 k_{min} t}` (exponential in the latent space). The
+    policy claims half that rate, :math:`a(x) = k(x) V(x)` (:meth:`decay`), leaving the other
+    half as room for rounding.
+
+    **Limits.** The decrease is exact only up to the rounding of the Jacobian solve (one
+    triangular step per layer; ill-conditioned where the layers stretch strongly). :math:`V`
+    is not convex, so the stability check's largest-safe-Euler-step bisection, exact for a
+    convex V, is only a heuristic here; and with no known quadratic floor
+    (``quadratic = 0``) the check cannot stop a rollout early once it is settled, and
+    integrates the whole horizon. Exponential decrease of V does not bound the time to reach
+    a metric tolerance uniformly, since :math:`\phi^{-1}` may stretch.
+
+    Arguments:
+        dim: State dimension n >= 2 (coupling layers split the state in two).
+        normalization: The task's affine map of space and time.
+        config: The architecture.
+        seed: Seed of the random Fourier buffers (the weights start at the identity flow).
+    """
+
+    kind = "sdsef"
+    config_class = SDSEFConfig
+
+    def __init__(
+        self, *, dim: int, normalization: Normalization, config: SDSEFConfig, seed: int = 0
+    ) -> None:
+        if dim < 2:
+            raise DataError(
+                f"SDS-EF needs a state of dimension >= 2 (its coupling layers split the state "
+                f"in two), got {dim}; use snds for 1-D motions"
+            )
+        super().__init__(dim=dim, normalization=normalization)
+        self.config = config
+        # The flow lives only inside the Lyapunov function, so that its tensors are saved once
+        # (safetensors refuses shared tensors under two names).
+        self.lyapunov = FlowLyapunov(EuclideanizingFlow(dim, config, seed=seed))
+        self.gain = SpeedGain(dim, config, torch.Generator().manual_seed(seed + 1))
+
+    @property
+    def flow(self) -> EuclideanizingFlow:
+        r"""The diffeomorphism :math:`\phi`."""
+        return self.lyapunov.flow
+
+    def decay(self, v: Tensor, x: Tensor) -> Tensor:
+        """The claimed decrease rate a(x) = k(x) V(x), half the exact 2 k(x) V(x); shape (*,).
+
+        Arguments:
+            v: V at the states, shape (*,).
+            x: The states in model coordinates, shape (*, n).
+        """
+        return self.gain(x.reshape(-1, self.dim)).reshape(v.shape) * v
+
+    def field(self, x: Tensor) -> Tensor:
+        """The policy in model coordinates, (*, n) -> (*, n)."""
+        flat = x.reshape(-1, self.dim)
+        e, caches = self.lyapunov.latent(flat)
+        # The target's row has e = 0, so solving it too costs one row and gives exactly 0.
+        velocity = -self.flow.solve(caches, e)[:-1] * self.gain(flat).unsqueeze(-1)
+        return velocity.reshape(x.shape)
+
+
+@dataclass(frozen=True)
+class SDSEF(Method):
+    """SDS-EF trained on velocities by :func:`snds.train.fit` (MSE, as the paper).
+
+    Attributes:
+        name: Its key in :data:`snds.methods.METHODS`.
+        description: One line for tables.
+        policy_config: The architecture.
+        train_config: Optimiser settings (seed and steps are replaced per fit).
+        has_lyapunov: True: the policy carries V.
+    """
+
+    name: str = "sdsef"
+    description: str = "SDS-EF: Euclideanizing flows (coupling-layer diffeomorphism, Rana 2020)"
+    policy_config: SDSEFConfig = field(default_factory=SDSEFConfig)
+    train_config: TrainConfig = field(default_factory=TrainConfig)
+    has_lyapunov: bool = True
+
+    def fit(
+        self,
+        demos: Demonstrations,
+        split: Split,
+        *,
+        seed: int = 0,
+        steps: int | None = None,
+        progress: bool = False,
+    ) -> Fitted:
+        """Fits an :class:`SDSEFPolicy` to the training velocities (see :meth:`Method.fit`)."""
+        from snds.train import fit
+
+        config = replace(self.train_config, seed=seed, steps=steps or self.train_config.steps)
+        torch.manual_seed(seed)
+        policy = SDSEFPolicy(
+            dim=demos.dim,
+            normalization=Normalization.fit(demos),
+            config=self.policy_config,
+            seed=seed,
+        )
+        result = fit(policy, demos, split, config, progress=progress)
+        record = {
+            "train": config.to_dict(),
+            "train_result": {
+                "seconds": result.seconds,
+                "steps": result.steps,
+                "restarts": result.restarts,
+                "stopped": result.stopped,
+            },
+        }
+        return Fitted(policy=policy, seconds=result.seconds, record=record)
