@@ -218,3 +218,17 @@ def test_unfitted_policy_rebuilds_from_its_config():
     assert SEDSConfig(**policy.config.to_dict()) == policy.config
     x = torch.randn(7, 3)
     torch.testing.assert_close(policy(x), -x)  # the stable placeholder -x, in user units
+
+
+def test_a_failed_optimisation_keeps_the_stable_initial_fit(spiral_split, monkeypatch):
+    demos, split = spiral_split
+
+    def broken(self, closure):
+        closure()
+        raise RuntimeError("cholesky failed")
+
+    monkeypatch.setattr(torch.optim.LBFGS, "step", broken)
+    fitted = dataclasses.replace(SEDS(), max_components=2).fit(demos, split, seed=0)
+    record = fitted.record["seds"]
+    assert record["status"].startswith("failed") and record["mse"] == record["mse_initial"]
+    assert (symmetric_part_eigenvalues(fitted.policy.matrices.numpy()) < 0).all()

@@ -189,6 +189,67 @@ class _SEDSParameters(nn.Module):
         return blend(x, gamma, self.matrices())
 
 
+def _optimise(params: _SEDSParameters, x: Tensor, v: Tensor, iterations: int) -> dict:
+    r"""Minimises the velocity MSE over ``params`` in place by full-batch L-BFGS.
+
+    If the optimisation fails (an exception, a non-finite loss) or ends worse than it
+    started, the initial parameters are restored: a fit never returns worse than its start.
+
+    Arguments:
+        params: The parametrisation, initialised.
+        x: Training positions in model coordinates, shape (N, n).
+        v: Their velocities, shape (N, n).
+        iterations: Maximum L-BFGS iterations.
+
+    Returns:
+        A record: status, iterations, loss evaluations, initial and final MSE
+        :math:`\frac1N \sum_i \|\dot x_i - f(x_i)\|^2`.
+    """
+    loss_fn = lambda: ((params(x) - v) ** 2).sum(-1).mean()  # noqa: E731
+    with torch.no_grad():
+        initial_mse = float(loss_fn())
+    state = {k: t.detach().clone() for k, t in params.state_dict().items()}
+    optimizer = torch.optim.LBFGS(
+        params.parameters(),
+        lr=1.0,
+        max_iter=max(1, iterations),
+        history_size=20,
+        tolerance_grad=1e-10,
+        tolerance_change=1e-14,
+        line_search_fn="strong_wolfe",
+    )
+
+    def closure() -> Tensor:
+        optimizer.zero_grad()
+        loss = loss_fn()
+        loss.backward()
+        return loss
+
+    status = "ok"
+    try:
+        optimizer.step(closure)
+    except RuntimeError as error:  # e.g. a Cholesky factorisation that failed
+        status = f"failed ({error.__class__.__name__}); initial parameters kept"
+    with torch.no_grad():
+        try:
+            final_mse = float(loss_fn())
+        except RuntimeError:
+            final_mse = math.nan
+    if not final_mse <= initial_mse:
+        params.load_state_dict(state)
+        final_mse = initial_mse
+        status = "no improvement; initial parameters kept" if status == "ok" else status
+    # L-BFGS keeps its counters in the state of its first parameter.
+    counters = optimizer.state_dict()["state"].get(0, {})
+    return {
+        "status": status,
+        "iterations": int(counters.get("n_iter", 0)),
+        "evaluations": int(counters.get("func_evals", 0)),
+        "mse_initial": initial_mse,
+        "mse": final_mse,
+    }
+
+
 @dataclass(frozen=True)
 class SEDS(Method):
     """SEDS fitted by L-BFGS on the velocity MSE, stable by construction.
@@ -270,40 +331,7 @@ class SEDS(Method):
             eps=self.eps,
             reg_covar=self.reg_covar,
         )
-        loss_fn = lambda: ((params(x) - v) ** 2).sum(-1).mean()  # noqa: E731
-        with torch.no_grad():
-            initial_mse = float(loss_fn())
-        state = {k: t.detach().clone() for k, t in params.state_dict().items()}
-        optimizer = torch.optim.LBFGS(
-            params.parameters(),
-            lr=1.0,
-            max_iter=max(1, iterations),
-            history_size=20,
-            tolerance_grad=1e-10,
-            tolerance_change=1e-14,
-            line_search_fn="strong_wolfe",
-        )
-
-        def closure() -> Tensor:
-            optimizer.zero_grad()
-            loss = loss_fn()
-            loss.backward()
-            return loss
-
-        status = "ok"
-        try:
-            optimizer.step(closure)
-        except RuntimeError as error:  # e.g. a covariance that lost positive definiteness
-            status = f"failed ({error.__class__.__name__}); initial parameters kept"
-        with torch.no_grad():
-            try:
-                final_mse = float(loss_fn())
-            except RuntimeError:
-                final_mse = math.nan
-        if not final_mse <= initial_mse:
-            params.load_state_dict(state)
-            final_mse = initial_mse
-            status = "no improvement; initial parameters kept" if status == "ok" else status
+        optimisation = _optimise(params, x, v, iterations)
         with torch.no_grad():
             weights = torch.softmax(params.logits, 0).numpy()
             covariances = params.covariances().numpy()
@@ -322,8 +350,6 @@ class SEDS(Method):
             lyapunov_matrix=np.eye(n),
         )
         seconds = time.perf_counter() - start
-        # L-BFGS keeps its counters in the state of its first parameter.
-        state_after = optimizer.state_dict()["state"].get(0, {})
         record = {
             "seds": {
                 "settings": {
@@ -335,11 +361,7 @@ class SEDS(Method):
                 "bic": {str(k): val for k, val in mixture.bic.items()},
                 "samples": len(x),
                 "samples_mixture": len(few),
-                "iterations": int(state_after.get("n_iter", 0)),
-                "evaluations": int(state_after.get("func_evals", 0)),
-                "status": status,
-                "mse_initial": initial_mse,
-                "mse": final_mse,
+                **optimisation,
                 "margin": margin,
                 "seed": seed,
             }
