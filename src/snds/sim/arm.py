@@ -10,6 +10,7 @@ with the TinyRenderer, which needs no display.
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import os
 import sys
 import tempfile
@@ -91,28 +92,36 @@ class EndEffector:
 
 
 @contextlib.contextmanager
-def _quiet_stdout() -> Iterator[None]:
-    # PyBullet prints its build time and argv from C on import and connect; keep a
-    # command's output to what it means to say.
+def _quiet_output() -> Iterator[None]:
+    # PyBullet prints its build time (stderr) and argv (stdout) from C on import and
+    # connect; keep a command's output to what it means to say.
+    streams = [sys.stdout, sys.stderr]
     try:
-        fd = sys.stdout.fileno()
+        fds = [stream.fileno() for stream in streams]
     except (AttributeError, OSError, ValueError):
         yield
         return
-    sys.stdout.flush()
-    saved = os.dup(fd)
+    for stream in streams:
+        stream.flush()
+    saved = [os.dup(fd) for fd in fds]
     with open(os.devnull, "w") as null:
-        os.dup2(null.fileno(), fd)
+        for fd in fds:
+            os.dup2(null.fileno(), fd)
         try:
             yield
         finally:
-            os.dup2(saved, fd)
-            os.close(saved)
+            # C's stdio may still buffer what PyBullet printed: flush it into /dev/null, not
+            # later into the restored streams.
+            with contextlib.suppress(OSError, AttributeError):
+                ctypes.CDLL(None).fflush(None)
+            for fd, copy in zip(fds, saved):
+                os.dup2(copy, fd)
+                os.close(copy)
 
 
 def _pybullet():
     try:
-        with _quiet_stdout():
+        with _quiet_output():
             import pybullet
             from pybullet_utils import bullet_client
     except ImportError as error:
@@ -133,7 +142,7 @@ class Arm:
         pb, bullet_client = _pybullet()
         self._pb = pb
         self.robot = robot
-        with _quiet_stdout():
+        with _quiet_output():
             self.client = bullet_client.BulletClient(connection_mode=pb.DIRECT)
         self.client.setTimeStep(physics_dt)
         self.client.setGravity(0.0, 0.0, -9.81 if gravity else 0.0)

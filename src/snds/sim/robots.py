@@ -54,7 +54,7 @@ class Robot:
         (-1.0, 0.0, 0.0),
     )
     reach: float = 0.2
-    camera: tuple[float, float, float] = (1.1, 60.0, -55.0)
+    camera: tuple[float, float, float] = (1.3, 60.0, -50.0)
 
     def urdf_path(self, scratch: Path) -> Path:
         """The URDF file to load, resolved from its source.
@@ -116,7 +116,7 @@ ROBOTS: dict[str, Robot] = {
         end_effector="panda_grasptarget",
         rest_pose=(0.0, -0.2, 0.0, -2.2, 0.0, 2.0, 0.785),
         plane_origin=(0.5, 0.0, 0.3),
-        camera=(1.0, 60.0, -55.0),
+        camera=(1.25, 60.0, -50.0),
     ),
     "jaco2": Robot(
         name="jaco2",
@@ -127,7 +127,7 @@ ROBOTS: dict[str, Robot] = {
         plane_origin=(0.0, -0.45, 0.3),
         plane_axes=((1.0, 0.0, 0.0), (0.0, 1.0, 0.0)),
         reach=0.15,
-        camera=(0.9, -30.0, -55.0),
+        camera=(1.05, -30.0, -50.0),
     ),
 }
 

@@ -66,7 +66,7 @@ class SimConfig:
     control_rate: float = 100.0
     substeps: int = 4
     time_limit: float = 30.0
-    tolerance: float = 0.002
+    tolerance: float = 0.001
     push: Push | None = None
     hold_gain: float = 5.0
     gravity: bool = True
