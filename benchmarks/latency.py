@@ -1,0 +1,230 @@
+"""Latency of a policy: eager PyTorch, the ONNX export in onnxruntime, and torch.export.
+
+Two cases: one state per call (the control-loop case; one thread) and batches of 10,000
+states (one thread, and all cores). Each call is timed on its own with ``perf_counter_ns``;
+the table gives the median and the 99th percentile. Inputs are prepared before the clock
+starts, in each backend's own type (a torch tensor, a NumPy array).
+
+    snds train --motion Sine --out runs/Sine          # the model (about a minute)
+    python benchmarks/latency.py --model runs/Sine    # table into benchmarks/README.md
+
+Writes ``benchmarks/results/latency.json`` (with the exported files' equality checks) and
+``.csv``, and (without ``--no-readme``) the table between the ``latency`` markers of
+``benchmarks/README.md``. The exported files go to a temporary folder.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import datetime
+import json
+import os
+import platform
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import onnxruntime
+import torch
+
+from snds import export
+from snds.io import load_model
+
+HERE = Path(__file__).resolve().parent
+BATCH = 10_000
+
+
+def _time(call: Callable[[], object], *, calls: int, warmup: int) -> np.ndarray:
+    """Seconds of each of ``calls`` timed calls, after ``warmup`` untimed ones."""
+    for _ in range(warmup):
+        call()
+    seconds = np.empty(calls)
+    for i in range(calls):
+        begin = time.perf_counter_ns()
+        call()
+        seconds[i] = (time.perf_counter_ns() - begin) * 1e-9
+    return seconds
+
+
+def _backends(policy, files: dict[str, Path], threads: int) -> dict[str, Callable]:
+    """Functions from a prepared input to velocities, one per (backend, precision)."""
+    torch.set_num_threads(threads)
+    eager32 = export._copy(policy, torch.float32)
+    eager64 = export._copy(policy, torch.float64)
+    program = torch.export.load(str(files["pt2"])).module()
+
+    def eager(module):
+        def run(x):
+            with torch.inference_mode():
+                return module(x)
+
+        return run
+
+    def onnx(path):
+        options = onnxruntime.SessionOptions()
+        options.intra_op_num_threads = threads
+        options.inter_op_num_threads = 1
+        options.graph_optimization_level = onnxruntime.GraphOptimizationLevel.ORT_ENABLE_ALL
+        session = onnxruntime.InferenceSession(
+            str(path), options, providers=["CPUExecutionProvider"]
+        )
+        name = session.get_inputs()[0].name
+        return lambda x: session.run(None, {name: x})[0]
+
+    def exported(x):
+        with torch.inference_mode():
+            return program(x)
+
+    return {
+        "eager PyTorch float32": eager(eager32),
+        "eager PyTorch float64": eager(eager64),
+        "ONNX Runtime float32": onnx(files["onnx32"]),
+        "ONNX Runtime float64": onnx(files["onnx64"]),
+        "torch.export float32": exported,
+    }
+
+
+def _input(name: str, x: np.ndarray):
+    dtype = np.float64 if "float64" in name else np.float32
+    array = np.ascontiguousarray(x, dtype=dtype)
+    return array if name.startswith("ONNX") else torch.from_numpy(array)
+
+
+def measure(policy, files: dict[str, Path], *, calls: int, seed: int) -> list[dict]:
+    """All rows: each backend, one state (1 thread) and a batch (1 thread, all cores)."""
+    states = export.random_states(policy, BATCH, seed=seed)
+    # The control-loop case evaluates states near the data; the batch spans all radii.
+    single = (policy.normalization.center + 0.5 * policy.normalization.length)[None]
+    cores = os.cpu_count() or 1
+    rows = []
+    plan = [("single", single, 1, calls), ("batch", states, 1, 50)]
+    if cores > 1:
+        plan.append(("batch", states, cores, 50))
+    for case, x, threads, count in plan:
+        for name, run in _backends(policy, files, threads).items():
+            prepared = _input(name, x)
+            seconds = _time(lambda run=run, p=prepared: run(p), calls=count, warmup=count // 10)
+            rows.append(
+                {
+                    "backend": name,
+                    "case": case,
+                    "states_per_call": len(x),
+                    "threads": threads,
+                    "calls": count,
+                    "median_us": round(float(np.median(seconds)) * 1e6, 2),
+                    "p99_us": round(float(np.percentile(seconds, 99)) * 1e6, 2),
+                }
+            )
+            print(json.dumps(rows[-1]), flush=True)
+    return rows
+
+
+def table(rows: list[dict], checks: dict[str, dict]) -> str:
+    """Markdown: one line per backend; single state in us, batches in ms."""
+    names = list(dict.fromkeys(r["backend"] for r in rows))
+    multi = sorted({r["threads"] for r in rows if r["case"] == "batch" and r["threads"] > 1})
+    header = "| backend | 1 state: median / p99 (us) | 10,000 states, 1 thread: median / p99 (ms)"
+    header += "".join(f" | 10,000 states, {t} threads (ms)" for t in multi)
+    header += " | largest difference from the library |"
+    lines = [header, "|---" * (4 + len(multi)) + "|"]
+    for name in names:
+        mine = {(r["case"], r["threads"]): r for r in rows if r["backend"] == name}
+        one = mine[("single", 1)]
+        cells = [f"{one['median_us']:.1f} / {one['p99_us']:.1f}"]
+        for threads in [1, *multi]:
+            batch = mine[("batch", threads)]
+            cells.append(f"{batch['median_us'] / 1e3:.2f} / {batch['p99_us'] / 1e3:.2f}")
+        check = checks.get(name)
+        cells.append("(reference)" if check is None else f"{check['max_error']:.1e}")
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def _write_readme_section(tag: str, body: str) -> None:
+    readme = HERE / "README.md"
+    text = readme.read_text() if readme.exists() else "# Benchmarks\n"
+    begin, end = f"<!-- {tag}:begin -->", f"<!-- {tag}:end -->"
+    block = f"{begin}\n{body}\n{end}"
+    if begin in text and end in text:
+        text = text[: text.index(begin)] + block + text[text.index(end) + len(end) :]
+    else:
+        text = text.rstrip() + "\n\n" + block + "\n"
+    tmp = readme.with_suffix(".md.tmp")
+    tmp.write_text(text)
+    os.replace(tmp, readme)
+
+
+def _run(policy, folder: Path, *, calls: int, seed: int) -> tuple[list[dict], dict]:
+    files = {
+        "onnx32": export.export_onnx(policy, folder / "policy-float32.onnx"),
+        "onnx64": export.export_onnx(policy, folder / "policy-float64.onnx", dtype=torch.float64),
+        "pt2": export.export_pt2(policy, folder / "policy-float32.pt2"),
+    }
+    checks = {
+        "ONNX Runtime float32": export.verify(files["onnx32"], policy).to_dict(),
+        "ONNX Runtime float64": export.verify(files["onnx64"], policy).to_dict(),
+        "torch.export float32": export.verify(files["pt2"], policy).to_dict(),
+    }
+    return measure(policy, files, calls=calls, seed=seed), checks
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--model", type=Path, default=Path("runs/Sine"), help="model directory")
+    parser.add_argument("--calls", type=int, default=20_000, help="timed single-state calls")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the batch states")
+    parser.add_argument("--no-readme", action="store_true")
+    args = parser.parse_args()
+    if not (args.model / "model.json").is_file():
+        raise SystemExit(
+            f"{args.model}: no model; train one with `snds train --motion Sine --out {args.model}`"
+        )
+    policy, description = load_model(args.model)
+    out = HERE / "results"
+    with tempfile.TemporaryDirectory(prefix="snds-latency-") as folder:
+        rows, checks = _run(policy, Path(folder), calls=args.calls, seed=args.seed)
+    meta = {
+        "date": datetime.date.today().isoformat(),
+        "machine": f"{platform.machine()}, {os.cpu_count()} cores, {platform.platform()}",
+        "processor": _cpu_name(),
+        "torch": torch.__version__,
+        "onnxruntime": onnxruntime.__version__,
+        "model": str(args.model),
+        "motion": description.get("data", {}).get("motion"),
+        "architecture": description.get("policy"),
+        "checks": checks,
+    }
+    (out / "latency.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=2) + "\n")
+    with open(out / "latency.csv", "w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    body = table(rows, checks)
+    print(body)
+    if not args.no_readme:
+        header = (
+            f"Measured {meta['date']} on {meta['machine']} ({meta['processor']}), idle; "
+            f"torch {meta['torch']}, onnxruntime {meta['onnxruntime']}; model `{args.model}` "
+            f"({meta['motion'] or 'custom data'}, default architecture). The difference is "
+            "the largest over 10,000 random states (up to 1000x the extent) of "
+            "|exported - library| / max(|library|, top speed), the library in the same "
+            "precision."
+        )
+        _write_readme_section("latency", header + "\n\n" + body)
+
+
+def _cpu_name() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown processor"
+
+
+if __name__ == "__main__":
+    main()
