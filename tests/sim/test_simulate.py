@@ -63,11 +63,15 @@ def pushed_run(policy, demos):
     return simulate(policy, start, SimConfig(robot="iiwa", push=push, time_limit=20.0))
 
 
-def test_arm_reaches_the_target_after_a_push(pushed_run) -> None:
+def test_arm_reaches_the_target_after_a_push(pushed_run, demos) -> None:
     run = pushed_run
     config = run.config
     distance = np.linalg.norm(run.positions - run.placement.origin, axis=1)
-    # the run stops at the target, as soon as it gets there, well before the time limit
+    # it starts where asked; it stops at the target, as soon as it gets there, well before
+    # the time limit
+    assert run.start_error < 1e-4
+    start = demos[0].positions[0]
+    assert np.linalg.norm(run.states[0] - start) * run.placement.scale < 1e-4
     assert run.reached and run.final_error <= config.tolerance <= 0.01
     assert run.times[-1] < config.time_limit
     assert distance[-2] > config.tolerance

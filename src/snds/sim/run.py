@@ -149,6 +149,8 @@ class SimResult:
         joints: Controlled joint positions, radians, shape (T, k).
         joint_lower: Lower joint limits, shape (k,).
         joint_upper: Upper joint limits, shape (k,).
+        start_error: Distance from the end effector to the requested start when the run
+            began, metres (more than a millimetre: the start was out of reach).
         reached: Whether the run stopped within the tolerance of the target.
         final_error: Distance from the end effector to the target at the end, metres.
         push_time: When the push happened, seconds (None without one).
@@ -166,6 +168,7 @@ class SimResult:
     joints: np.ndarray
     joint_lower: np.ndarray
     joint_upper: np.ndarray
+    start_error: float
     reached: bool
     final_error: float
     push_time: float | None
@@ -190,6 +193,7 @@ class SimResult:
                 "scale_m_per_unit": self.placement.scale,
                 "target": self.placement.target.tolist(),
             },
+            "start_error_m": self.start_error,
             "reached": self.reached,
             "final_error_m": self.final_error,
             "duration_s": float(self.times[-1]),
@@ -231,7 +235,7 @@ def simulate(policy: Policy, start: np.ndarray, config: SimConfig) -> SimResult:
     with Arm(robot, physics_dt=dt / config.substeps, gravity=config.gravity) as arm:
         arm.reset(arm.rest)
         hold = arm.end_effector().orientation
-        arm.move_to(placement.to_world(start), hold)
+        start_error = arm.move_to(placement.to_world(start), hold)
         # The motors track an integrated reference, not "measured + one step": a reference
         # ahead of a sagging arm keeps pushing, so gravity leaves no steady-state offset.
         reference = arm.joint_positions()
@@ -279,6 +283,7 @@ def simulate(policy: Policy, start: np.ndarray, config: SimConfig) -> SimResult:
             joints=np.array(joints),
             joint_lower=arm.lower.copy(),
             joint_upper=arm.upper.copy(),
+            start_error=float(start_error),
             reached=final_error <= config.tolerance,
             final_error=final_error,
             push_time=push_time,
