@@ -16,6 +16,13 @@ the paper's choice. Every layer's Jacobian is block triangular, so the Jacobian 
 :math:`\nabla V = 2 J_\phi^\top (\phi(x) - \phi(x^*))` are written analytically, one cheap
 triangular step per layer, with no autograd (checked against autograd in the tests).
 
+The default couplings are additive (:math:`y_b = x_b + t(x_a)`, NICE-style, a zero log-scale):
+on LASA they fit as well as affine ones, and their Jacobians stay bounded and well
+conditioned everywhere, whereas affine couplings give a field that grows without bound away
+from the data (the term :math:`x_b e^s \partial s / \partial x_a` compounds over the layers)
+and explicit Euler rollouts from far starts blow up (measured in the benchmark notes of the
+module's tests). ``max_log_scale > 0`` gives the paper's affine couplings.
+
 Everything here is in the task's model coordinates, where the target is the origin.
 
 Reference: M. A. Rana, A. Li, D. Fox, B. Boots, F. Ramos, N. Ratliff, "Euclideanizing Flows:
@@ -42,7 +49,7 @@ class SDSEFConfig:
     r"""Architecture of an SDS-EF policy; saved beside its weights.
 
     Attributes:
-        layers: Number of affine coupling layers of :math:`\phi`.
+        layers: Number of coupling layers of :math:`\phi`.
         features: Random Fourier features per coupling layer (the paper: a linear layer on
             fixed random features of the conditioning coordinates).
         fourier_scale: Standard deviation of the random frequencies, in cycles per unit of
@@ -59,9 +66,9 @@ class SDSEFConfig:
     """
 
     layers: int = 10
-    features: int = 64
-    fourier_scale: float = 0.5
-    max_log_scale: float = 2.0
+    features: int = 128
+    fourier_scale: float = 2.0
+    max_log_scale: float = 0.0
     speed_features: int = 64
     speed_scale: float = 0.5
     speed_range: float = 2.0
@@ -402,13 +409,18 @@ class SDSEFPolicy(Policy):
     policy claims half that rate, :math:`a(x) = k(x) V(x)` (:meth:`decay`), leaving the other
     half as room for rounding.
 
-    **Limits.** The decrease is exact only up to the rounding of the Jacobian solve (one
-    triangular step per layer; ill-conditioned where the layers stretch strongly). :math:`V`
-    is not convex, so the stability check's largest-safe-Euler-step bisection, exact for a
-    convex V, is only a heuristic here; and with no known quadratic floor
-    (``quadratic = 0``) the check cannot stop a rollout early once it is settled, and
-    integrates the whole horizon. Exponential decrease of V does not bound the time to reach
-    a metric tolerance uniformly, since :math:`\phi^{-1}` may stretch.
+    **Limits.** The guarantee is for the continuous-time flow. The decrease is exact only up
+    to the rounding of the Jacobian solve (one triangular step per layer); with affine
+    couplings the Jacobian gets ill-conditioned far from the data, where the rounding can
+    exceed the decrease and where explicit Euler steps of the demonstrations' size can
+    overshoot and diverge, while additive couplings (the default) keep :math:`J_\phi` and
+    :math:`J_\phi^{-1}` bounded. :math:`V` is not convex, so the stability check's
+    largest-safe-Euler-step bisection, exact for a convex V, is only a heuristic here; and
+    with no known quadratic floor (``quadratic = 0``) the check cannot stop a rollout early
+    once it is settled, and integrates the whole horizon. Exponential decrease of V does not
+    bound the time to reach a metric tolerance uniformly, since :math:`\phi^{-1}` may
+    stretch. Near the target the field is :math:`\pi(x) \approx -k(0) x` (the Jacobians
+    cancel): every motion ends on a straight, radial approach.
 
     Arguments:
         dim: State dimension n >= 2 (coupling layers split the state in two).
@@ -488,8 +500,8 @@ class SDSEF(Method):
         """Fits an :class:`SDSEFPolicy` to the training velocities (see :meth:`Method.fit`)."""
         from snds.train import fit
 
-        config = replace(self.train_config, seed=seed, steps=steps or self.train_config.steps)
-        torch.manual_seed(seed)
+        steps = self.train_config.steps if steps is None else steps
+        config = replace(self.train_config, seed=seed, steps=steps)
         policy = SDSEFPolicy(
             dim=demos.dim,
             normalization=Normalization.fit(demos),
