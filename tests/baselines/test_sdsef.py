@@ -46,6 +46,18 @@ def scrambled(config: SDSEFConfig, dim: int = 2, seed: int = 0, size: float = 0.
     return policy
 
 
+def gaussian(*shape: int, seed: int = 0) -> torch.Tensor:
+    """Seeded float64 normal samples (the global generator differs between processes)."""
+    return torch.randn(*shape, dtype=torch.float64, generator=torch.Generator().manual_seed(seed))
+
+
+def relative_error(value: torch.Tensor, expected: torch.Tensor) -> float:
+    """Largest per-sample |value - expected| / |expected|, over all but the first axis."""
+    value, expected = value.detach(), expected.detach()
+    difference = (value - expected).flatten(1).norm(dim=-1)
+    return float((difference / expected.flatten(1).norm(dim=-1)).max())
+
+
 def warped_demos(count: int = 4, samples: int = 150) -> Demonstrations:
     r"""Demonstrations of a system SDS-EF can represent: straight latent lines, bent.
 
@@ -87,7 +99,7 @@ def trained() -> tuple[SDSEFPolicy, Demonstrations, Split]:
 def test_flow_is_a_bijection_with_positive_jacobian(variant, dim):
     # GIVEN a flow with random weights, in float64
     flow = scrambled(VARIANTS[variant], dim=dim, seed=dim).flow
-    x = 2.0 * torch.randn(500, dim, dtype=torch.float64)
+    x = 2.0 * gaussian(500, dim, seed=dim)
     # THEN phi^-1(phi(x)) = x and det J_phi > 0 at every sampled state
     torch.testing.assert_close(flow.inverse(flow(x)), x, rtol=0, atol=1e-9)
     sign, _ = torch.linalg.slogdet(flow.jacobian(x))
@@ -99,19 +111,22 @@ def test_flow_is_a_bijection_with_positive_jacobian(variant, dim):
 def test_analytic_jacobian_gradient_and_solve_equal_autograd(variant, dim):
     policy = scrambled(VARIANTS[variant], dim=dim, seed=10 + dim)
     flow = policy.flow
-    x = torch.randn(200, dim, dtype=torch.float64)
+    x = gaussian(200, dim, seed=dim)
+    # Errors relative to each sample's norm: entries of a row can differ by orders of
+    # magnitude. Worst seen over 40 seeds: 2e-11 (Jacobian), 2e-13 (gradient), 1e-9 (field,
+    # through a dense solve of a matrix with condition number up to 1e4).
     jacobian = torch.func.vmap(torch.func.jacrev(lambda z: flow(z.unsqueeze(0)).squeeze(0)))(x)
-    torch.testing.assert_close(flow.jacobian(x), jacobian, rtol=1e-10, atol=1e-10)
+    assert relative_error(flow.jacobian(x), jacobian) < 1e-9
     # grad V analytically = autograd of V
     value, grad = policy.lyapunov.value_and_grad(x)
     xr = x.clone().requires_grad_()
     (autograd,) = torch.autograd.grad(policy.lyapunov(xr).sum(), xr)
-    torch.testing.assert_close(grad, autograd, rtol=1e-10, atol=1e-10)
+    assert relative_error(grad, autograd) < 1e-10
     torch.testing.assert_close(value, policy.lyapunov(x), rtol=1e-12, atol=0)
     # the field is -k J^-1 (phi(x) - phi(0)), J^-1 by a dense solve
     latent = flow(x) - flow(torch.zeros(1, dim, dtype=torch.float64))
     expected = -policy.gain(x).unsqueeze(-1) * torch.linalg.solve(jacobian, latent)
-    torch.testing.assert_close(policy.field(x), expected, rtol=1e-9, atol=1e-12)
+    assert relative_error(policy.field(x), expected) < 1e-7
 
 
 @pytest.mark.parametrize("variant", list(VARIANTS))
@@ -119,7 +134,7 @@ def test_analytic_jacobian_gradient_and_solve_equal_autograd(variant, dim):
 def test_lyapunov_decreases_at_random_and_far_points(variant, scale):
     # GIVEN SDS-EF with random weights, in float64, at states up to 1e3 x the data's extent
     policy = scrambled(VARIANTS[variant], seed=3)
-    x = scale * torch.randn(5000, 2, dtype=torch.float64)
+    x = scale * gaussian(5000, 2, seed=int(scale))
     # WHEN V and the field are evaluated
     with torch.no_grad():
         value, grad = policy.lyapunov.value_and_grad(x)
@@ -148,13 +163,13 @@ def test_target_is_the_equilibrium_and_v_vanishes_only_there():
         assert policy.field(zero).abs().max().item() == 0.0
         # the user-unit wrapper: the target is the normalisation's center
         assert policy(policy.center.double().unsqueeze(0)).abs().max().item() == 0.0
-        near = 1e-6 * torch.randn(100, 2, dtype=torch.float64)
+        near = 1e-6 * gaussian(100, 2)
         assert (policy.lyapunov(near) > 0).all()
 
 
 def test_field_works_without_autograd_in_float32_and_after_deepcopy():
     policy = SDSEFPolicy(dim=2, normalization=unit_normalization(2), config=SMALL)
-    x = torch.randn(10, 2)
+    x = gaussian(10, 2).float()
     with torch.no_grad():
         assert policy.field(x).dtype == torch.float32
         copy64 = copy.deepcopy(policy).to(torch.float64)

@@ -93,7 +93,7 @@ class _LayerCache:
     """What a coupling layer's Jacobian needs from its forward pass (B rows)."""
 
     stretched: Tensor  # (B, n) x * exp(s), x the layer's input
-    sin: Tensor  # (B, m) sin of the Fourier angles
+    angles: Tensor  # (B, m) the Fourier angles
     stretch: Tensor  # (B, n) exp(s), 1 on the conditioning coordinates
     slope: Tensor  # (B, n) ds/d(raw s) = 1 - tanh^2
 
@@ -164,7 +164,7 @@ class RFFCoupling(nn.Module):
         self.bias = nn.Parameter(torch.zeros(outputs))
 
     def _conditioner(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """s, t (each (B, n), zero on x_a), the slope 1 - tanh^2 of s (B, n) and sin of the
+        """s, t (each (B, n), zero on x_a), the slope 1 - tanh^2 of s (B, n) and the Fourier
         angles (B, m)."""
         # Masking W's columns (not the (B, n) outputs) zeroes s and t on x_a at the cost of
         # one small product per call, and those columns then get no gradient.
@@ -174,21 +174,21 @@ class RFFCoupling(nn.Module):
             self.bias * columns, torch.cos(angles), self.weight * columns, alpha=self.amplitude
         )
         if not self.affine:
-            return torch.zeros_like(x), raw, torch.zeros_like(x), torch.sin(angles)
+            return torch.zeros_like(x), raw, torch.zeros_like(x), angles
         squashed = torch.tanh(raw[:, : self.dim] / self.max_log_scale)
         return (
             self.max_log_scale * squashed,
             raw[:, self.dim :],
             1.0 - squashed * squashed,
-            torch.sin(angles),
+            angles,
         )
 
     def forward(self, x: Tensor) -> tuple[Tensor, _LayerCache]:
         """Maps states (B, n) to (B, n) and keeps what the Jacobian needs."""
-        s, t, slope, sin = self._conditioner(x)
+        s, t, slope, angles = self._conditioner(x)
         stretch = torch.exp(s)
         stretched = x * stretch
-        return stretched + t, _LayerCache(stretched, sin, stretch, slope)
+        return stretched + t, _LayerCache(stretched, angles, stretch, slope)
 
     def inverse(self, y: Tensor) -> Tensor:
         """The inverse map, (B, n) -> (B, n): :math:`x_b = (y_b - t(y_a)) e^{-s(y_a)}`."""
@@ -197,7 +197,8 @@ class RFFCoupling(nn.Module):
 
     def _c_times(self, cache: _LayerCache, w: Tensor) -> Tensor:
         """C w_a, shape (B, n), zero on x_a; only w_a matters (Omega's x_b rows are zero)."""
-        d_features = cache.sin * (w @ self.frequencies)
+        # sin is computed here, not in forward: evaluating phi or V alone does not need it.
+        d_features = torch.sin(cache.angles) * (w @ self.frequencies)
         d_raw = (d_features @ self.weight) * (-self.amplitude * self._columns())
         if not self.affine:
             return d_raw
@@ -222,7 +223,7 @@ class RFFCoupling(nn.Module):
         r"""J^T g for cotangents g (B, n): :math:`(g_a + C^\top g_b, e^s g_b)`."""
         grad_raw = torch.cat([g * cache.stretched * cache.slope, g], -1) if self.affine else g
         weight = self.weight * (-self.amplitude * self._columns())
-        d_features = cache.sin * (grad_raw @ weight.T)
+        d_features = torch.sin(cache.angles) * (grad_raw @ weight.T)
         return cache.stretch * g + d_features @ self.frequencies.T
 
 
