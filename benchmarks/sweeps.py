@@ -10,8 +10,8 @@ Three sweeps, each resumable (a rerun skips the runs already in its folder):
     python benchmarks/sweeps.py --methods snds,bc,lpvds --seeds 3 --only paper8
 
 Runs go to ``runs/sweeps/<name>/`` (models included); each sweep's ``results.csv``,
-``summary.md`` and figures are copied to ``benchmarks/results/sweeps/<name>/``, and the
-summaries go between the ``sweeps`` markers of ``benchmarks/README.md``.
+``summary.md`` and figures are copied to ``benchmarks/results/sweeps/<name>/``, and its
+summary goes between the ``sweep-<name>`` markers of ``benchmarks/README.md``.
 """
 
 from __future__ import annotations
@@ -65,7 +65,7 @@ def run(name: str, args: argparse.Namespace, settings: SweepSettings) -> str:
     )
     demos_text = "all 7 demonstrations" if demos is None else f"{demos} demonstration(s)"
     return (
-        f"### {name}: {motions}, {demos_text}, {args.seeds} seeds\n\n"
+        f"#### {name}: {motions}, {demos_text}, {args.seeds} seeds\n\n"
         f"`python benchmarks/sweeps.py --only {name}` (or `snds benchmark --methods "
         f"{args.methods} --motions {motions}"
         + (f" --demos {demos}" if demos else "")
@@ -88,16 +88,17 @@ def main() -> None:
     parser.add_argument("--no-readme", action="store_true")
     args = parser.parse_args()
     settings = SweepSettings(rollouts=args.rollouts, samples=args.samples)
-    paragraphs = [run(name, args, settings) for name in args.only]
-    if not args.no_readme:
-        machine = f"{platform.machine()}, {os.cpu_count()} cores, {platform.platform()}"
-        header = (
-            f"Measured {datetime.date.today().isoformat()} on {machine}; runs side by side "
-            f"on all cores, one torch thread each; each run's stability check: "
-            f"{settings.rollouts} rollouts from the 3x box, {settings.samples} decrease "
-            "samples in the 10x box (float64)."
-        )
-        write_readme_section("sweeps", header + "\n\n" + "\n".join(paragraphs))
+    machine = f"{platform.machine()}, {os.cpu_count()} cores, {platform.platform()}"
+    for name in args.only:
+        paragraph = run(name, args, settings)
+        if not args.no_readme:
+            header = (
+                f"Measured {datetime.date.today().isoformat()} on {machine}; runs side by "
+                "side on all cores, one torch thread each; each run's stability check: "
+                f"{settings.rollouts} rollouts from the 3x box, {settings.samples} decrease "
+                "samples in the 10x box (float64)."
+            )
+            write_readme_section(f"sweep-{name}", paragraph + "\n" + header)
 
 
 if __name__ == "__main__":
