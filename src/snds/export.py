@@ -122,13 +122,22 @@ def export_pt2(policy: Policy, path: str | Path, *, dtype: torch.dtype = torch.f
 
 
 def _softplus_onnx(self, beta: float = 1.0, threshold: float = 20.0):
-    # onnxruntime has Softplus in float32 only; this form is exact in any precision:
-    # softplus(u) = max(u, 0) + log(1 + exp(-|u|)), and u itself above the threshold.
+    # torch's softplus: log(1 + exp(beta u)) / beta, and u itself where beta u > threshold,
+    # as max(u, 0) + log(1 + exp(-|u|)), which is exact in any precision. onnxruntime's own
+    # Softplus has no float64 kernel, and its float32 one is scalar code: this form, of
+    # vectorised operations, runs a batch of 10,000 states 20% faster (benchmarks/README.md).
+    from onnxscript import ir
     from onnxscript import opset18 as op
 
-    scaled = op.Mul(self, op.CastLike(beta, self))
+    scaled = self if beta == 1.0 else op.Mul(self, op.CastLike(beta, self))
     tail = op.Log(op.Add(op.CastLike(1.0, self), op.Exp(op.Neg(op.Abs(scaled)))))
-    value = op.Div(op.Add(op.Relu(scaled), tail), op.CastLike(beta, self))
+    value = op.Add(op.Relu(scaled), tail)
+    if beta != 1.0:
+        value = op.Div(value, op.CastLike(beta, self))
+    if self.dtype == ir.DataType.FLOAT:
+        # Above the threshold the tail, below exp(-20), is under half an ulp of the result:
+        # float32 rounds to u without the cut-off.
+        return value
     return op.Where(op.Greater(scaled, op.CastLike(threshold, self)), self, value)
 
 
