@@ -1,5 +1,5 @@
 """Baselines the benchmark compares SNDS with, each a :class:`~snds.policy.Policy` and a
-:class:`~snds.methods.Method`.
+:class:`~snds.method.Method`.
 
 * :mod:`snds.baselines.lpvds`: LPV-DS (Figueroa & Billard, CoRL 2018), a Gaussian-mixture
   blend of linear systems with one shared quadratic Lyapunov function, fitted by a convex
@@ -12,8 +12,3 @@
 Their optional dependencies (scikit-learn, cvxpy) are imported only when a fit runs
 (``pip install 'snds[baselines]'``); loading and evaluating a saved model needs neither.
 """
-
-# snds.methods registers the baselines and the baselines subclass its Method: importing it
-# before any baseline module makes both import orders work (a baseline imported first would
-# otherwise be half-initialised when methods.py asks it for its classes).
-import snds.methods  # noqa: F401

@@ -71,7 +71,7 @@ from snds.baselines.mixture import (
 from snds.data.demonstrations import Demonstrations, Normalization, Split
 from snds.errors import SNDSError
 from snds.losses import make_samples
-from snds.methods import Fitted, Method
+from snds.method import Fitted, Method
 
 
 @dataclass(frozen=True, kw_only=True)

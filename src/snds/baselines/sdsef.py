@@ -41,7 +41,7 @@ from torch import Tensor, nn
 
 from snds.data.demonstrations import Demonstrations, Normalization, Split
 from snds.errors import DataError
-from snds.methods import Fitted, Method
+from snds.method import Fitted, Method
 from snds.policy import Policy
 from snds.train import TrainConfig
 
