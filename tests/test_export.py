@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import json
 import runpy
 import sys
@@ -16,6 +17,7 @@ from snds import export
 from snds.cli import main
 from snds.data import Demonstration, Demonstrations
 from snds.io import save_model
+from snds.policy import PolicyConfig
 
 from conftest import SMALL, make_policy, spiral_demos
 
@@ -125,6 +127,26 @@ def test_pt2_round_trip_is_exact_and_pickle_free(tmp_path: Path, dim: int) -> No
     x = export.random_states(policy, 1, seed=2)
     with torch.no_grad():
         np.testing.assert_allclose(run(x), policy(torch.as_tensor(x)).numpy(), rtol=1e-12)
+
+
+def test_lyapunov_with_the_target_values_given_is_the_same(policy) -> None:
+    # GIVEN g(0) and grad g(0) computed once, as the export does
+    lyapunov = copy.deepcopy(policy.lyapunov).to(torch.float64)
+    x = torch.as_tensor(export.random_states(policy, 1_000, seed=5) - 100.0).reshape(10, 100, 2)
+    g0, grad_g0 = lyapunov.icnn.value_and_grad(torch.zeros(1, 2, dtype=torch.float64))
+    # THEN V and its gradient are those of the usual call, for any batch shape
+    v, grad = lyapunov.value_and_grad(x)
+    v_given, grad_given = lyapunov.value_and_grad(x, at_target=(g0[0], grad_g0[0]))
+    torch.testing.assert_close(v_given, v, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(grad_given, grad, rtol=1e-12, atol=1e-12)
+
+
+def test_unconstrained_policy_exports_too(tmp_path: Path) -> None:
+    config = PolicyConfig(**{**SMALL.to_dict(), "stable": False})
+    policy = make_policy(shifted_spiral(), config=config, dtype=torch.float64).eval()
+    path = export.export_pt2(policy, tmp_path / "bc.pt2", dtype=torch.float64)
+    check = export.verify(path, policy, samples=2_000)
+    assert check.passed and check.max_error <= 1e-12
 
 
 def test_pt2_with_a_pickled_entry_is_refused(tmp_path: Path) -> None:

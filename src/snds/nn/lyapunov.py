@@ -44,21 +44,30 @@ class Lyapunov(nn.Module):
         self.icnn = ICNN(dim, hidden=hidden, activation=activation)
         self.quadratic = quadratic
 
-    def value_and_grad(self, x: Tensor) -> tuple[Tensor, Tensor]:
+    def value_and_grad(
+        self, x: Tensor, *, at_target: tuple[Tensor, Tensor] | None = None
+    ) -> tuple[Tensor, Tensor]:
         r"""Evaluates :math:`V` and :math:`\nabla V` analytically (no autograd needed).
 
         Arguments:
             x: States in model coordinates, shape (*, n).
+            at_target: :math:`g(x^*)` and :math:`\nabla g(x^*)`, shapes () and (n,), when the
+                caller already has them (an exported policy computes them once, not per
+                call); evaluated together with ``x`` otherwise.
 
         Returns:
             V, shape (*,), and its gradient, shape (*, n).
         """
-        # One pass over the batch and the target together: half the calls of two passes.
-        n = x.shape[-1]
-        flat = x.reshape(-1, n)
-        g, grad_g = self.icnn.value_and_grad(torch.cat([flat, flat.new_zeros(1, n)]))
-        g0, grad_g0 = g[-1], grad_g[-1]
-        g, grad_g = g[:-1].reshape(x.shape[:-1]), grad_g[:-1].reshape(x.shape)
+        if at_target is None:
+            # One pass over the batch and the target together: half the calls of two passes.
+            n = x.shape[-1]
+            flat = x.reshape(-1, n)
+            g, grad_g = self.icnn.value_and_grad(torch.cat([flat, flat.new_zeros(1, n)]))
+            g0, grad_g0 = g[-1], grad_g[-1]
+            g, grad_g = g[:-1].reshape(x.shape[:-1]), grad_g[:-1].reshape(x.shape)
+        else:
+            g, grad_g = self.icnn.value_and_grad(x)
+            g0, grad_g0 = at_target
         # The Bregman divergence of a convex g is >= 0 exactly; the clamp only removes the
         # rounding error of the cancellation g(x) - g(0) - grad g(0).x near the target, which
         # in float32 could otherwise make V slightly negative there.
