@@ -93,10 +93,17 @@ def _input(name: str, x: np.ndarray):
     return array if name.startswith("ONNX") else torch.from_numpy(array)
 
 
-def measure(policy, files: dict[str, Path], *, calls: int, seed: int) -> list[dict]:
-    """All rows: each backend, one state (1 thread) and a batch (1 thread, all cores)."""
+def measure(
+    policy, files: dict[str, Path], *, calls: int, seed: int, rounds: int = 3
+) -> list[dict]:
+    """All rows: each backend, one state (1 thread) and a batch (1 thread, all cores).
+
+    The machine is shared: each configuration is measured in ``rounds`` rounds, the backends
+    taking turns, and the round with the lowest median is kept (with its own p99), so a
+    burst of someone else's work inflates at most the rounds it overlaps.
+    """
     states = export.random_states(policy, BATCH, seed=seed)
-    # The control-loop case evaluates states near the data; the batch spans all radii.
+    # The control-loop case: a state inside the demonstrations' box, away from the target.
     single = (policy.normalization.center + 0.5 * policy.normalization.length)[None]
     cores = os.cpu_count() or 1
     rows = []
@@ -104,9 +111,15 @@ def measure(policy, files: dict[str, Path], *, calls: int, seed: int) -> list[di
     if cores > 1:
         plan.append(("batch", states, cores, 50))
     for case, x, threads, count in plan:
-        for name, run in _backends(policy, files, threads).items():
-            prepared = _input(name, x)
-            seconds = _time(lambda run=run, p=prepared: run(p), calls=count, warmup=count // 10)
+        backends = _backends(policy, files, threads)
+        best: dict[str, np.ndarray] = {}
+        for _ in range(rounds):
+            for name, run in backends.items():
+                prepared = _input(name, x)
+                seconds = _time(lambda run=run, p=prepared: run(p), calls=count, warmup=count // 10)
+                if name not in best or np.median(seconds) < np.median(best[name]):
+                    best[name] = seconds
+        for name, seconds in best.items():
             rows.append(
                 {
                     "backend": name,
@@ -114,6 +127,7 @@ def measure(policy, files: dict[str, Path], *, calls: int, seed: int) -> list[di
                     "states_per_call": len(x),
                     "threads": threads,
                     "calls": count,
+                    "rounds": rounds,
                     "median_us": round(float(np.median(seconds)) * 1e6, 2),
                     "p99_us": round(float(np.percentile(seconds, 99)) * 1e6, 2),
                 }
@@ -127,7 +141,7 @@ def table(rows: list[dict], checks: dict[str, dict]) -> str:
     names = list(dict.fromkeys(r["backend"] for r in rows))
     multi = sorted({r["threads"] for r in rows if r["case"] == "batch" and r["threads"] > 1})
     header = "| backend | 1 state: median / p99 (us) | 10,000 states, 1 thread: median / p99 (ms)"
-    header += "".join(f" | 10,000 states, {t} threads (ms)" for t in multi)
+    header += "".join(f" | 10,000 states, {t} threads: median / p99 (ms)" for t in multi)
     header += " | largest difference from the library |"
     lines = [header, "|---" * (4 + len(multi)) + "|"]
     for name in names:
@@ -157,7 +171,7 @@ def _write_readme_section(tag: str, body: str) -> None:
     os.replace(tmp, readme)
 
 
-def _run(policy, folder: Path, *, calls: int, seed: int) -> tuple[list[dict], dict]:
+def _run(policy, folder: Path, *, calls: int, seed: int, rounds: int) -> tuple[list[dict], dict]:
     files = {
         "onnx32": export.export_onnx(policy, folder / "policy-float32.onnx"),
         "onnx64": export.export_onnx(policy, folder / "policy-float64.onnx", dtype=torch.float64),
@@ -168,13 +182,14 @@ def _run(policy, folder: Path, *, calls: int, seed: int) -> tuple[list[dict], di
         "ONNX Runtime float64": export.verify(files["onnx64"], policy).to_dict(),
         "torch.export float32": export.verify(files["pt2"], policy).to_dict(),
     }
-    return measure(policy, files, calls=calls, seed=seed), checks
+    return measure(policy, files, calls=calls, seed=seed, rounds=rounds), checks
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--model", type=Path, default=Path("runs/Sine"), help="model directory")
-    parser.add_argument("--calls", type=int, default=20_000, help="timed single-state calls")
+    parser.add_argument("--calls", type=int, default=10_000, help="timed single-state calls")
+    parser.add_argument("--rounds", type=int, default=3, help="rounds; the best one is kept")
     parser.add_argument("--seed", type=int, default=0, help="seed of the batch states")
     parser.add_argument("--no-readme", action="store_true")
     args = parser.parse_args()
@@ -185,7 +200,9 @@ def main() -> None:
     policy, description = load_model(args.model)
     out = HERE / "results"
     with tempfile.TemporaryDirectory(prefix="snds-latency-") as folder:
-        rows, checks = _run(policy, Path(folder), calls=args.calls, seed=args.seed)
+        rows, checks = _run(
+            policy, Path(folder), calls=args.calls, seed=args.seed, rounds=args.rounds
+        )
     meta = {
         "date": datetime.date.today().isoformat(),
         "machine": f"{platform.machine()}, {os.cpu_count()} cores, {platform.platform()}",
@@ -206,7 +223,8 @@ def main() -> None:
     print(body)
     if not args.no_readme:
         header = (
-            f"Measured {meta['date']} on {meta['machine']} ({meta['processor']}), idle; "
+            f"Measured {meta['date']} on {meta['machine']} ({meta['processor']}), shared "
+            f"with other work: best of {args.rounds} rounds per row; "
             f"torch {meta['torch']}, onnxruntime {meta['onnxruntime']}; model `{args.model}` "
             f"({meta['motion'] or 'custom data'}, default architecture). The difference is "
             "the largest over 10,000 random states (up to 1000x the extent) of "

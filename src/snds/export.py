@@ -34,9 +34,10 @@ from snds.policy import Policy, StablePolicy, project
 
 #: Largest accepted difference from the library, relative to max(|velocity|, top speed) of
 #: each state. float64 graphs agree to rounding (about 1e-13). In float32 the library itself
-#: differs from its float64 value by up to a few 1e-5 of the top speed next to the target
-#: (V and its gradient there are small differences of numbers of order 1), so two float32
-#: implementations with different operation orders cannot agree more closely than that.
+#: differs from its float64 value by about 1e-5 of the top speed next to the target (V and
+#: its gradient there are small differences of numbers of order 1), and two float32
+#: implementations that order the operations differently, by a few times that (3e-5 on
+#: LASA Sine).
 TOLERANCE = {torch.float64: 1e-5, torch.float32: 1e-4}
 #: Spread of the random states of :func:`random_states`, in units of the demonstrations'
 #: extent: from near the data out to 1000x.
