@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 import onnxruntime
 import torch
+from _readme import write_readme_section
 
 from snds import export
 from snds.io import load_model
@@ -157,20 +158,6 @@ def table(rows: list[dict], checks: dict[str, dict]) -> str:
     return "\n".join(lines)
 
 
-def _write_readme_section(tag: str, body: str) -> None:
-    readme = HERE / "README.md"
-    text = readme.read_text() if readme.exists() else "# Benchmarks\n"
-    begin, end = f"<!-- {tag}:begin -->", f"<!-- {tag}:end -->"
-    block = f"{begin}\n{body}\n{end}"
-    if begin in text and end in text:
-        text = text[: text.index(begin)] + block + text[text.index(end) + len(end) :]
-    else:
-        text = text.rstrip() + "\n\n" + block + "\n"
-    tmp = readme.with_suffix(".md.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, readme)
-
-
 def _run(policy, folder: Path, *, calls: int, seed: int, rounds: int) -> tuple[list[dict], dict]:
     files = {
         "onnx32": export.export_onnx(policy, folder / "policy-float32.onnx"),
@@ -231,7 +218,7 @@ def main() -> None:
             "|exported - library| / max(|library|, top speed), the library in the same "
             "precision."
         )
-        _write_readme_section("latency", header + "\n\n" + body)
+        write_readme_section("latency", header + "\n\n" + body)
 
 
 def _cpu_name() -> str:
