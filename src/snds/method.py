@@ -11,9 +11,13 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 from snds.data.demonstrations import Demonstrations, Normalization, Split
 from snds.policy import Policy, PolicyConfig, StablePolicy
+
+if TYPE_CHECKING:
+    from snds.train import TrainConfig
 
 
 @dataclass(frozen=True)
@@ -67,6 +71,31 @@ class Method(ABC):
         """
 
 
+def train_network(
+    policy: Policy,
+    demos: Demonstrations,
+    split: Split,
+    config: TrainConfig,
+    *,
+    progress: bool = False,
+) -> Fitted:
+    """Trains a network policy with :func:`snds.train.fit` and records how (for any method
+    whose policy is trained by gradient descent on the velocity loss: SNDS, BC, SDS-EF)."""
+    from snds.train import fit
+
+    result = fit(policy, demos, split, config, progress=progress)
+    record = {
+        "train": config.to_dict(),
+        "train_result": {
+            "seconds": result.seconds,
+            "steps": result.steps,
+            "restarts": result.restarts,
+            "stopped": result.stopped,
+        },
+    }
+    return Fitted(policy=policy, seconds=result.seconds, record=record)
+
+
 @dataclass(frozen=True)
 class NeuralMethod(Method):
     """SNDS and BC: a :class:`~snds.policy.StablePolicy` trained by :func:`snds.train.fit`.
@@ -89,7 +118,7 @@ class NeuralMethod(Method):
         steps: int | None = None,
         progress: bool = False,
     ) -> Fitted:
-        from snds.train import TrainConfig, fit
+        from snds.train import TrainConfig
 
         config = TrainConfig(seed=seed) if steps is None else TrainConfig(seed=seed, steps=steps)
         policy = StablePolicy(
@@ -98,14 +127,4 @@ class NeuralMethod(Method):
             config=self.policy_config,
             seed=seed,
         )
-        result = fit(policy, demos, split, config, progress=progress)
-        record = {
-            "train": config.to_dict(),
-            "train_result": {
-                "seconds": result.seconds,
-                "steps": result.steps,
-                "restarts": result.restarts,
-                "stopped": result.stopped,
-            },
-        }
-        return Fitted(policy=policy, seconds=result.seconds, record=record)
+        return train_network(policy, demos, split, config, progress=progress)

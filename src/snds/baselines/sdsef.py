@@ -41,7 +41,7 @@ from torch import Tensor, nn
 
 from snds.data.demonstrations import Demonstrations, Normalization, Split
 from snds.errors import DataError
-from snds.method import Fitted, Method
+from snds.method import Fitted, Method, train_network
 from snds.policy import Policy
 from snds.train import TrainConfig
 
@@ -504,8 +504,6 @@ class SDSEF(Method):
         progress: bool = False,
     ) -> Fitted:
         """Fits an :class:`SDSEFPolicy` to the training velocities (see :meth:`Method.fit`)."""
-        from snds.train import fit
-
         steps = self.train_config.steps if steps is None else steps
         config = replace(self.train_config, seed=seed, steps=steps)
         policy = SDSEFPolicy(
@@ -514,14 +512,4 @@ class SDSEF(Method):
             config=self.policy_config,
             seed=seed,
         )
-        result = fit(policy, demos, split, config, progress=progress)
-        record = {
-            "train": config.to_dict(),
-            "train_result": {
-                "seconds": result.seconds,
-                "steps": result.steps,
-                "restarts": result.restarts,
-                "stopped": result.stopped,
-            },
-        }
-        return Fitted(policy=policy, seconds=result.seconds, record=record)
+        return train_network(policy, demos, split, config, progress=progress)
