@@ -19,7 +19,8 @@ pytest.importorskip("sklearn", reason="LPV-DS needs the baselines extra (scikit-
 pytest.importorskip("cvxpy", reason="LPV-DS needs the baselines extra (cvxpy)")
 
 from snds.baselines import lpvds  # noqa: E402
-from snds.baselines.lpvds import LPVDS, LPVDSConfig, LPVDSPolicy  # noqa: E402
+from snds.baselines.lpvds import LPVDS, LPVDSPolicy  # noqa: E402
+from snds.baselines.mixture import MixtureConfig  # noqa: E402
 from snds.io import load_model, save_model  # noqa: E402
 from snds.methods import METHODS, POLICY_KINDS  # noqa: E402
 
@@ -225,8 +226,8 @@ def test_an_unverifiable_solution_is_refused(spiral_split, monkeypatch):
 
 def test_unfitted_policy_is_stable_and_rebuilds_from_its_config():
     norm = Normalization(center=np.zeros(2), length=1.0, time=1.0)
-    policy = LPVDSPolicy(dim=2, normalization=norm, config=LPVDSConfig(components=4))
+    policy = LPVDSPolicy(dim=2, normalization=norm, config=MixtureConfig(components=4))
     assert policy.matrices.shape == (4, 2, 2) and policy.means.shape == (4, 2)
     x = torch.randn(10, 2)
     torch.testing.assert_close(policy(x), -x)
-    assert LPVDSConfig(**policy.config.to_dict()) == policy.config
+    assert MixtureConfig(**policy.config.to_dict()) == policy.config

@@ -17,9 +17,9 @@ from conftest import spiral_demos
 
 pytest.importorskip("sklearn", reason="SEDS needs the baselines extra (scikit-learn)")
 
+from snds.baselines.mixture import MixtureConfig  # noqa: E402
 from snds.baselines.seds import (  # noqa: E402
     SEDS,
-    SEDSConfig,
     SEDSPolicy,
     _project_stable,
     _SEDSParameters,
@@ -213,9 +213,9 @@ def test_other_dimensions(dim):
 
 def test_unfitted_policy_rebuilds_from_its_config():
     norm = Normalization(center=np.zeros(3), length=2.0, time=1.0)
-    policy = SEDSPolicy(dim=3, normalization=norm, config=SEDSConfig(components=2))
+    policy = SEDSPolicy(dim=3, normalization=norm, config=MixtureConfig(components=2))
     assert policy.matrices.shape == (2, 3, 3) and policy.precision_factors.shape == (2, 3, 3)
-    assert SEDSConfig(**policy.config.to_dict()) == policy.config
+    assert MixtureConfig(**policy.config.to_dict()) == policy.config
     x = torch.randn(7, 3)
     torch.testing.assert_close(policy(x), -x)  # the stable placeholder -x, in user units
 

@@ -59,6 +59,7 @@ from typing import Any
 import numpy as np
 
 from snds.baselines.mixture import (
+    MixtureConfig,
     MixtureFit,
     MixtureLinearPolicy,
     design_matrix,
@@ -72,21 +73,6 @@ from snds.data.demonstrations import Demonstrations, Normalization, Split
 from snds.errors import SNDSError
 from snds.losses import make_samples
 from snds.method import Fitted, Method
-
-
-@dataclass(frozen=True, kw_only=True)
-class LPVDSConfig:
-    """Architecture of an LPV-DS policy; saved beside its weights.
-
-    Attributes:
-        components: Number of mixture components K.
-    """
-
-    components: int = 1
-
-    def to_dict(self) -> dict:
-        """JSON-ready form."""
-        return asdict(self)
 
 
 class LPVDSPolicy(MixtureLinearPolicy):
@@ -104,10 +90,10 @@ class LPVDSPolicy(MixtureLinearPolicy):
     """
 
     kind = "lpvds"
-    config_class = LPVDSConfig
+    config_class = MixtureConfig
 
     def __init__(
-        self, *, dim: int, normalization: Normalization, config: LPVDSConfig, seed: int = 0
+        self, *, dim: int, normalization: Normalization, config: MixtureConfig, seed: int = 0
     ) -> None:
         super().__init__(dim=dim, normalization=normalization, components=config.components)
         self.config = config
@@ -306,7 +292,7 @@ class LPVDS(Method):
         policy = LPVDSPolicy(
             dim=demos.dim,
             normalization=normalization,
-            config=LPVDSConfig(components=mixture.components),
+            config=MixtureConfig(components=mixture.components),
         )
         fallbacks: list[str] = []
         solvers = [self.solver] + [s for s in ("CLARABEL", "SCS") if s != self.solver]

@@ -26,7 +26,7 @@ import contextlib
 import importlib
 import math
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from types import ModuleType
 
 import numpy as np
@@ -168,6 +168,22 @@ def _frozen(tensor: Tensor) -> nn.Parameter:
     # Fitted numbers are parameters (so they land in safetensors, follow .to() and count in
     # .parameters()), but no optimiser should move them after the fit.
     return nn.Parameter(tensor, requires_grad=False)
+
+
+@dataclass(frozen=True, kw_only=True)
+class MixtureConfig:
+    """Architecture of a mixture-of-linear-systems policy (LPV-DS, SEDS); saved beside its
+    weights.
+
+    Attributes:
+        components: Number of mixture components K.
+    """
+
+    components: int = 1
+
+    def to_dict(self) -> dict:
+        """JSON-ready form."""
+        return asdict(self)
 
 
 class MixtureLinearPolicy(Policy):

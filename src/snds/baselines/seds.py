@@ -49,6 +49,7 @@ import torch
 from torch import Tensor, nn
 
 from snds.baselines.mixture import (
+    MixtureConfig,
     MixtureLinearPolicy,
     blend,
     design_matrix,
@@ -62,21 +63,6 @@ from snds.baselines.mixture import (
 from snds.data.demonstrations import Demonstrations, Normalization, Split
 from snds.losses import make_samples
 from snds.method import Fitted, Method
-
-
-@dataclass(frozen=True, kw_only=True)
-class SEDSConfig:
-    """Architecture of a SEDS policy; saved beside its weights.
-
-    Attributes:
-        components: Number of mixture components K.
-    """
-
-    components: int = 1
-
-    def to_dict(self) -> dict:
-        """JSON-ready form."""
-        return asdict(self)
 
 
 class SEDSPolicy(MixtureLinearPolicy):
@@ -94,10 +80,10 @@ class SEDSPolicy(MixtureLinearPolicy):
     """
 
     kind = "seds"
-    config_class = SEDSConfig
+    config_class = MixtureConfig
 
     def __init__(
-        self, *, dim: int, normalization: Normalization, config: SEDSConfig, seed: int = 0
+        self, *, dim: int, normalization: Normalization, config: MixtureConfig, seed: int = 0
     ) -> None:
         super().__init__(dim=dim, normalization=normalization, components=config.components)
         self.config = config
@@ -340,7 +326,7 @@ class SEDS(Method):
         policy = SEDSPolicy(
             dim=n,
             normalization=normalization,
-            config=SEDSConfig(components=mixture.components),
+            config=MixtureConfig(components=mixture.components),
         )
         margin = policy.set_fitted(
             weights=weights,
