@@ -21,7 +21,7 @@ from snds.data import (
     split_demos,
     split_samples,
 )
-from snds.errors import SNDSError
+from snds.errors import ConfigError, SNDSError
 from snds.evaluate import evaluate
 from snds.io import load_model, save_model, to_jsonable, write_json
 from snds.policy import PolicyConfig, StablePolicy
@@ -251,7 +251,16 @@ def _source(args: argparse.Namespace) -> dict:
     return {"file": str(Path(args.data).resolve()), "demos": args.demos}
 
 
+def _check_sizes(args: argparse.Namespace) -> None:
+    """Refuses stability-check sizes that would fail only after training, before any work."""
+    if args.rollouts < 1:
+        raise ConfigError(f"--rollouts must be >= 1, got {args.rollouts}")
+    if args.samples < 0:
+        raise ConfigError(f"--samples must be >= 0, got {args.samples}")
+
+
 def _train(args: argparse.Namespace) -> int:
+    _check_sizes(args)
     demos = _load_data(args.motion, args.data, args.demos)
     out = args.out or Path("runs") / (demos.name or Path(str(args.data)).stem)
     split_record = {
@@ -322,6 +331,7 @@ def _model_and_data(args: argparse.Namespace) -> tuple[StablePolicy, dict, Demon
 
 
 def _evaluate(args: argparse.Namespace) -> int:
+    _check_sizes(args)
     policy, description, demos = _model_and_data(args)
     metrics = evaluate(
         policy,

@@ -17,3 +17,11 @@ class DataError(SNDSError, ValueError):
 
 class ModelFileError(SNDSError, ValueError):
     """A model directory or file that is missing, corrupted, or from an unknown version."""
+
+
+class ConfigError(SNDSError, ValueError):
+    """Settings that cannot be used: a count or rate out of range, an unknown choice."""
+
+
+class CheckpointError(SNDSError, ValueError):
+    """A training checkpoint that is corrupted or was made with other settings or data."""

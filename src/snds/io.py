@@ -8,6 +8,7 @@ at worst be refused, never execute code.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import tempfile
@@ -17,6 +18,7 @@ from typing import Any
 import numpy as np
 import torch
 from safetensors import SafetensorError
+from safetensors import safe_open
 from safetensors.torch import load_file, save_file
 
 from snds.data.demonstrations import Normalization
@@ -88,8 +90,20 @@ def save_model(policy: Policy, directory: Path, *, extra: dict | None = None) ->
         "target": policy.normalization.center.tolist(),
         **(extra or {}),
     }
-    atomic_write(directory / WEIGHTS, lambda tmp: save_file(tensors, str(tmp)))
-    write_json(directory / DESCRIPTION, description)
+    digest: list[str] = []
+
+    def write_weights(tmp: Path) -> None:
+        save_file(tensors, str(tmp))
+        digest.append(_sha256(tmp))
+
+    # Weights first, then the description that names their hash: a save interrupted between
+    # the two renames leaves a pair that load_model refuses, never a silent mismatch.
+    atomic_write(directory / WEIGHTS, write_weights)
+    write_json(directory / DESCRIPTION, {**description, "weights_sha256": digest[0]})
+
+
+def _sha256(path: Path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
 def read_description(directory: Path) -> dict:
@@ -138,31 +152,60 @@ def load_model(directory: Path) -> tuple[Policy, dict]:
             f"{', '.join(POLICY_KINDS)}"
         )
     cls = POLICY_KINDS[kind]
-    try:
-        config = cls.config_class(**description["policy"])
-        normalization = Normalization.from_dict(description["normalization"])
-        policy = cls(dim=int(description["dim"]), normalization=normalization, config=config)
-    except (TypeError, ValueError, DataError) as error:
-        raise ModelFileError(
-            f"{directory / DESCRIPTION}: invalid architecture ({error})"
-        ) from error
+    # Built on the meta device first (no memory): a crafted model.json asking for huge layers
+    # is refused by the shape check below before anything is allocated.
+    shapes = _described_shapes(directory / DESCRIPTION, cls, description)
     weights = directory / WEIGHTS
     if not weights.is_file():
         raise ModelFileError(f"{weights}: missing")
     try:
+        with safe_open(str(weights), framework="pt") as header:
+            found = {name: tuple(header.get_slice(name).get_shape()) for name in header.keys()}
+    except (SafetensorError, OSError, ValueError) as error:
+        raise ModelFileError(f"{weights}: corrupted safetensors file ({error})") from error
+    _check_shapes(weights, shapes, found)
+    recorded = description.get("weights_sha256")
+    if recorded is not None and recorded != _sha256(weights):
+        raise ModelFileError(
+            f"{weights}: does not match {DESCRIPTION} (its hash differs: changed since, or a "
+            "save was interrupted between the two files)"
+        )
+    policy = _build(directory / DESCRIPTION, cls, description)
+    try:
         tensors = load_file(str(weights))
     except (SafetensorError, OSError, ValueError) as error:
         raise ModelFileError(f"{weights}: corrupted safetensors file ({error})") from error
-    _check_tensors(weights, policy.state_dict(), tensors)
+    _check_tensors(weights, tensors)
     dtype = next(iter(tensors.values())).dtype
     policy.to(dtype)
     policy.load_state_dict(tensors)
     return policy.eval(), description
 
 
-def _check_tensors(
-    path: Path, expected: dict[str, torch.Tensor], found: dict[str, torch.Tensor]
-) -> None:
+def _build(path: Path, cls: type[Policy], description: dict) -> Policy:
+    """The policy ``description`` describes, with fresh weights; a ModelFileError if invalid."""
+    try:
+        config = cls.config_class(**description["policy"])
+        normalization = Normalization.from_dict(description["normalization"])
+        dim = description["dim"]
+        # bool is an int to Python, and int("2") would accept text: only a true integer will do.
+        if type(dim) is not int or dim < 1:
+            raise ValueError(f"dim must be a positive integer, got {dim!r}")
+        return cls(dim=dim, normalization=normalization, config=config)
+    # A description we did not write can break a constructor anywhere: a wrong type
+    # (TypeError), a bad value (ValueError, DataError), a negative width (RuntimeError).
+    except (TypeError, ValueError, RuntimeError, KeyError, AttributeError, DataError) as error:
+        raise ModelFileError(f"{path}: invalid architecture ({error})") from error
+
+
+def _described_shapes(path: Path, cls: type[Policy], description: dict) -> dict[str, tuple]:
+    """The tensor shapes of the described architecture, computed without allocating them."""
+    with torch.device("meta"):
+        policy = _build(path, cls, description)
+    return {name: tuple(tensor.shape) for name, tensor in policy.state_dict().items()}
+
+
+def _check_shapes(path: Path, expected: dict[str, tuple], found: dict[str, tuple]) -> None:
     missing = sorted(set(expected) - set(found))
     unexpected = sorted(set(found) - set(expected))
     if missing or unexpected:
@@ -170,12 +213,16 @@ def _check_tensors(
             f"{path}: tensors do not match the architecture (missing {missing[:3]}, "
             f"unexpected {unexpected[:3]})"
         )
-    for name, tensor in found.items():
-        if tuple(tensor.shape) != tuple(expected[name].shape):
+    for name, shape in found.items():
+        if shape != expected[name]:
             raise ModelFileError(
-                f"{path}: tensor {name!r} has shape {tuple(tensor.shape)}, the architecture "
-                f"needs {tuple(expected[name].shape)}"
+                f"{path}: tensor {name!r} has shape {shape}, the architecture needs "
+                f"{expected[name]}"
             )
+
+
+def _check_tensors(path: Path, found: dict[str, torch.Tensor]) -> None:
+    for name, tensor in found.items():
         if not tensor.is_floating_point() or not bool(torch.isfinite(tensor).all()):
             raise ModelFileError(f"{path}: tensor {name!r} is not finite floating point")
 

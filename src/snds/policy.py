@@ -18,6 +18,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from snds.data.demonstrations import Normalization
+from snds.errors import ConfigError
 from snds.nn import MLP, Lyapunov
 
 
@@ -97,10 +98,13 @@ class PolicyConfig:
     def __post_init__(self) -> None:
         object.__setattr__(self, "hidden", tuple(self.hidden))
         object.__setattr__(self, "lyapunov_hidden", tuple(self.lyapunov_hidden))
-        if self.decay_rate < 0 or self.decay_far < 0:
-            raise ValueError("decay_rate and decay_far must be >= 0")
+        if not (self.decay_rate >= 0 and self.decay_far >= 0):
+            raise ConfigError(
+                f"decay_rate and decay_far must be >= 0, got {self.decay_rate} and "
+                f"{self.decay_far}"
+            )
         if self.rectifier not in RECTIFIERS:
-            raise ValueError(
+            raise ConfigError(
                 f"unknown rectifier {self.rectifier!r}; choose from {list(RECTIFIERS)}"
             )
 
@@ -201,7 +205,16 @@ class Policy(nn.Module, ABC):
         return (x - self.center.to(x.dtype)) / self.length
 
     def forward(self, x: Tensor) -> Tensor:
-        """Velocities (*, n) in user units at positions (*, n) in user units."""
+        """Velocities (*, n) in user units at positions (*, n) in user units.
+
+        The policy computes in its own precision (that of its weights); positions of another
+        dtype (float32 into a float64 model, integers, ...) are cast to it, so the velocities
+        are in the model's precision.
+        """
+        dtype = self.center.dtype
+        # A Python-level test, so an export traced in the model's dtype holds no Cast node.
+        if x.dtype != dtype:
+            x = x.to(dtype)
         return self.field(self.to_model(x)) * (self.length / self.time)
 
     @torch.no_grad()

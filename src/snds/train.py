@@ -12,7 +12,7 @@ import torch
 from tqdm.auto import tqdm
 
 from snds.data.demonstrations import Demonstrations, Split
-from snds.errors import SNDSError
+from snds.errors import ConfigError, SNDSError
 from snds.losses import VELOCITY_SHAPES, make_samples, velocity_loss, window_loss
 from snds.policy import StablePolicy
 
@@ -69,16 +69,28 @@ class TrainConfig:
 
     def __post_init__(self) -> None:
         if self.steps < 1:
-            raise ValueError(f"steps must be >= 1, got {self.steps}")
+            raise ConfigError(f"steps must be >= 1, got {self.steps}")
         if self.velocity_shape not in VELOCITY_SHAPES:
-            raise ValueError(
+            raise ConfigError(
                 f"unknown velocity_shape {self.velocity_shape!r}; choose from "
                 f"{list(VELOCITY_SHAPES)}"
             )
         if self.dtype not in DTYPES:
-            raise ValueError(f"unknown dtype {self.dtype!r}; choose from {list(DTYPES)}")
-        if self.window < 0 or self.batch_size < 0:
-            raise ValueError("window and batch_size must be >= 0")
+            raise ConfigError(f"unknown dtype {self.dtype!r}; choose from {list(DTYPES)}")
+        if self.window < 0 or self.batch_size < 0 or self.window_batch_size < 0:
+            raise ConfigError(
+                f"window and batch sizes must be >= 0, got window {self.window}, batch_size "
+                f"{self.batch_size}, window_batch_size {self.window_batch_size}"
+            )
+        if not (self.lr > 0 and math.isfinite(self.lr)):
+            raise ConfigError(f"lr must be a positive number, got {self.lr}")
+        try:
+            device = torch.device(self.device)
+        except RuntimeError:
+            raise ConfigError(f"unknown device {self.device!r} (e.g. cpu, cuda, cuda:1)") from None
+        # Checked here, not at the first tensor op: a missing GPU must fail before any work.
+        if device.type == "cuda" and not torch.cuda.is_available():
+            raise ConfigError(f"device {self.device!r}: no CUDA device is available")
 
     def to_dict(self) -> dict:
         """JSON-ready form."""

@@ -103,4 +103,5 @@ class ICNN(nn.Module):
 
 
 def _inverse_softplus(y: float) -> float:
-    return float(torch.log(torch.expm1(torch.tensor(y))))
+    # On the CPU even under a default device: snds.io builds policies on "meta" to check shapes.
+    return float(torch.log(torch.expm1(torch.tensor(y, device="cpu"))))
