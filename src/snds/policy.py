@@ -100,8 +100,7 @@ class PolicyConfig:
         object.__setattr__(self, "lyapunov_hidden", tuple(self.lyapunov_hidden))
         if not (self.decay_rate >= 0 and self.decay_far >= 0):
             raise ConfigError(
-                f"decay_rate and decay_far must be >= 0, got {self.decay_rate} and "
-                f"{self.decay_far}"
+                f"decay_rate and decay_far must be >= 0, got {self.decay_rate} and {self.decay_far}"
             )
         if self.rectifier not in RECTIFIERS:
             raise ConfigError(
