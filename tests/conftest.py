@@ -53,3 +53,28 @@ def make_policy(
 def policy64(spiral: Demonstrations) -> StablePolicy:
     """An untrained float64 stable policy: the guarantee must hold before any training."""
     return make_policy(spiral)
+
+
+def linear_policy(gain: float) -> StablePolicy:
+    """A 2-D stable policy that is exactly pi(x) = -gain x with V = d |x|^2 (float64).
+
+    The nominal field is zero and the ICNN's input skips are zero, so g is constant and the
+    Bregman form leaves V = d |x|^2; the projection then gives pi = -grad V a / |grad V|^2 =
+    -(rho / 2) x with a = rho V. Plain Euler with step h maps x to (1 - gain h) x: it cycles
+    at h = 2 / gain, which makes the guard's work checkable by hand.
+    """
+    config = PolicyConfig(
+        hidden=(4,),
+        fourier_features=0,
+        lyapunov_hidden=(4,),
+        decay_rate=2.0 * gain,
+        decay_far=0.0,
+    )
+    normalization = Normalization(center=np.zeros(2), length=1.0, time=1.0)
+    policy = StablePolicy(dim=2, normalization=normalization, config=config).double()
+    with torch.no_grad():
+        for p in policy.nominal_net.parameters():
+            p.zero_()
+        for skip in policy.lyapunov.icnn.skips:
+            skip.weight.zero_()
+    return policy

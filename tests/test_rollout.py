@@ -2,9 +2,9 @@ import math
 
 import torch
 
-from snds.rollout import converged_at, guarded_rollout, rollout
+from snds.rollout import converged_at, guarded_rollout, guarded_step, policy_guard, rollout
 
-from conftest import make_policy
+from conftest import linear_policy, make_policy
 
 
 def linear(x):
@@ -46,3 +46,29 @@ def test_converged_at_finds_the_first_index_that_stays_inside():
     states = torch.cat([d, torch.tensor([5.0, 4, 3, 2, 1.5]).reshape(5, 1, 1)], dim=1)
     idx = converged_at(states, torch.zeros(1), tolerance=1.0)
     assert idx.tolist() == [3, -1]
+
+
+def test_plain_euler_cycles_where_the_guarded_step_converges():
+    # pi = -5 x: plain Euler at h = 0.4 maps x to -x, a 2-cycle at constant V.
+    policy = linear_policy(5.0)
+    lyapunov, rate = policy_guard(policy)
+    x0 = torch.tensor([[1.0, 2.0], [-3.0, 0.5]], dtype=torch.float64)
+    plain = rollout(policy, x0, dt=0.4, steps=50)
+    torch.testing.assert_close(plain[-1], x0)  # 50 sign flips: back at the start
+    guarded = guarded_rollout(policy, lyapunov, x0, dt=0.4, steps=50, rate=rate)
+    values = torch.stack([lyapunov(s) for s in guarded.states])
+    # Armijo: each accepted step h keeps at least half the promised decrease a(x) h.
+    promised = 0.5 * guarded.steps_taken * rate(guarded.states[:-1], values[:-1])
+    assert (values[1:] <= values[:-1] - promised + 1e-15).all()
+    # Every first step is shortened: the nominal 0.4 s leaves V where it was.
+    assert (guarded.steps_taken[0] <= 0.2).all()
+    assert guarded.states[-1].abs().max() < 1e-12
+
+
+def test_guarded_step_keeps_a_safe_step_unchanged():
+    policy = linear_policy(5.0)
+    lyapunov, rate = policy_guard(policy)
+    x = torch.randn(100, 2, dtype=torch.float64)
+    stepped, h = guarded_step(policy, lyapunov, x, dt=0.05, rate=rate)
+    assert (h == 0.05).all()
+    torch.testing.assert_close(stepped, x + 0.05 * policy(x))

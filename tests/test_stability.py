@@ -114,3 +114,31 @@ def test_grid_starts_cover_the_box_corners(spiral):
     points = _grid_box(np.array([1.0, -2.0]), 3.0, 9)
     assert points.shape == (9, 2)
     assert {tuple(p) for p in points} >= {(-2.0, -5.0), (4.0, 1.0), (1.0, -2.0)}
+
+
+def _line_demo(dt: float) -> Demonstrations:
+    t = np.arange(0.0, 4.0, dt)
+    x = np.stack([1 - t / t[-1], 0 * t], axis=1)
+    v = np.tile([-1.0 / t[-1], 0.0], (len(t), 1))
+    return Demonstrations((Demonstration(positions=x, velocities=v, times=t),), np.zeros(2))
+
+
+def test_report_shows_where_plain_euler_would_cycle():
+    # pi = -5 x: Euler steps longer than 2/5 s do not decrease V; the data's step is 0.4 s.
+    from conftest import linear_policy
+
+    report = check_stability(linear_policy(5.0), _line_demo(0.4), rollouts=40, samples=2000)
+    assert report.integrator == "guarded euler"
+    assert report.converged_fraction == 1.0
+    assert report.shortened_fraction == 1.0
+    assert abs(report.largest_safe_dt_on_rollouts - 0.4) < 1e-6
+    assert abs(report.largest_safe_dt - 0.4) < 1e-6
+
+
+def test_report_shows_no_shortened_steps_where_euler_is_safe():
+    from conftest import linear_policy
+
+    report = check_stability(linear_policy(5.0), _line_demo(0.05), rollouts=40, samples=2000)
+    assert report.converged_fraction == 1.0
+    assert report.shortened_fraction == 0.0
+    assert report.largest_safe_dt > 0.05

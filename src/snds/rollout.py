@@ -9,6 +9,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from snds.policy import Policy
+
 Field = Callable[[Tensor], Tensor]
 
 
@@ -51,6 +53,68 @@ def rollout(field: Field, x0: Tensor, *, dt: float, steps: int, method: str = "e
     return torch.stack(states)
 
 
+Lyapunov = Callable[[Tensor], Tensor]
+#: The promised decrease rate of V per unit time at states (B, n) with values (B,).
+Rate = Callable[[Tensor, Tensor], Tensor]
+
+
+@torch.no_grad()
+def guarded_step(
+    field: Field,
+    lyapunov: Lyapunov,
+    x: Tensor,
+    *,
+    dt: float,
+    rate: Rate | None = None,
+    sufficient: float = 0.5,
+    max_halvings: int = 30,
+) -> tuple[Tensor, Tensor]:
+    r"""One Euler step per state, halved until it decreases V enough.
+
+    A continuous-time decrease :math:`\dot V \le -a` does not make every Euler step
+    :math:`x + h \pi(x)` decrease V: where the field is stiff, a step of the control period
+    can overshoot, and rollouts may circle on a discrete cycle at constant V. Since V is convex
+    and :math:`\pi` a descent direction, a short enough step always decreases V, so each
+    state's step is halved until the sufficient-decrease (Armijo) condition
+
+    .. math:: V(x + h \pi(x)) \le V(x) - c \, h \, a(x), \qquad V(x + h \pi) < V(x)
+
+    holds, with :math:`c` = ``sufficient`` < 1 and :math:`a` = ``rate``. A smooth V makes the
+    accepted step bounded below on every sublevel set, so with :math:`a = \rho V` the
+    discrete V falls at least geometrically: the discrete-time counterpart of the guarantee.
+    A state at the target (V = 0) takes the plain step.
+
+    Arguments:
+        field: The velocity field, (B, n) -> (B, n).
+        lyapunov: V, (B, n) -> (B,).
+        x: States, shape (B, n).
+        dt: The nominal step.
+        rate: The promised decrease rate a(x) of V per unit of time, given the states and
+            their values; None asks only that V drop.
+        sufficient: The fraction c of the promised decrease a step must achieve.
+        max_halvings: Give up shortening after this many halvings (then the step is taken).
+
+    Returns:
+        The next states, shape (B, n), and the steps taken, shape (B,).
+    """
+    velocity = field(x)
+    value = lyapunov(x)
+    required = torch.zeros_like(value) if rate is None else sufficient * rate(x, value)
+    h = torch.full_like(value, dt)
+    candidate = x + dt * velocity
+    pending = (value > 0).nonzero().squeeze(-1)
+    for _ in range(max_halvings):
+        if len(pending) == 0:
+            break
+        new = lyapunov(candidate[pending])
+        old = value[pending]
+        ok = (new <= old - h[pending] * required[pending]) & (new < old)
+        pending = pending[~ok]
+        h[pending] = 0.5 * h[pending]
+        candidate[pending] = x[pending] + h[pending].unsqueeze(-1) * velocity[pending]
+    return candidate, h
+
+
 @dataclass(frozen=True)
 class GuardedRollout:
     """Result of :func:`guarded_rollout`.
@@ -67,19 +131,15 @@ class GuardedRollout:
 @torch.no_grad()
 def guarded_rollout(
     field: Field,
-    lyapunov: Callable[[Tensor], Tensor],
+    lyapunov: Lyapunov,
     x0: Tensor,
     *,
     dt: float,
     steps: int,
+    rate: Rate | None = None,
     max_halvings: int = 30,
 ) -> GuardedRollout:
-    r"""Euler steps shortened until V drops, so every discrete step decreases V.
-
-    A continuous-time decrease :math:`\dot V \le -a` does not make every Euler step
-    :math:`x + \Delta t \, \pi(x)` decrease V. Since V is convex and :math:`\pi` is a descent
-    direction, a short enough step always does: each step is halved (per start) until
-    :math:`V(x_{k+1}) < V(x_k)` or the state is at the target.
+    """Rollouts of :func:`guarded_step`: every discrete step decreases V.
 
     Arguments:
         field: The velocity field, (B, n) -> (B, n).
@@ -87,25 +147,33 @@ def guarded_rollout(
         x0: Start states, shape (B, n).
         dt: The nominal time step.
         steps: Number of steps.
+        rate: The promised decrease rate (see :func:`guarded_step`); None: V must only drop.
         max_halvings: Give up shortening after this many halvings (then the step is taken).
     """
     x = x0
     states, taken = [x0], []
     for _ in range(steps):
-        velocity = field(x)
-        v_now = lyapunov(x)
-        h = torch.full_like(v_now, dt)
-        candidate = x + h.unsqueeze(-1) * velocity
-        for _ in range(max_halvings):
-            bad = (lyapunov(candidate) >= v_now) & (v_now > 0)
-            if not bad.any():
-                break
-            h = torch.where(bad, 0.5 * h, h)
-            candidate = x + h.unsqueeze(-1) * velocity
-        x = candidate
+        x, h = guarded_step(field, lyapunov, x, dt=dt, rate=rate, max_halvings=max_halvings)
         states.append(x)
         taken.append(h)
     return GuardedRollout(torch.stack(states), torch.stack(taken))
+
+
+def policy_guard(policy: Policy) -> tuple[Lyapunov, Rate]:
+    """A stable policy's V and promised decrease rate in user units, for :func:`guarded_step`.
+
+    V is read in model coordinates (positive rescaling leaves the Armijo condition as it is);
+    the rate :math:`a(x)` is per unit of model time, so per user second it is divided by the
+    normalisation's time scale.
+    """
+
+    def lyapunov(x: Tensor) -> Tensor:
+        return policy.lyapunov(policy.to_model(x))
+
+    def rate(x: Tensor, value: Tensor) -> Tensor:
+        return policy.decay(value, policy.to_model(x)) / policy.time
+
+    return lyapunov, rate
 
 
 def converged_at(states: Tensor, target: Tensor, tolerance: float) -> Tensor:

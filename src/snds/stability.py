@@ -14,6 +14,7 @@ import torch
 
 from snds.data.demonstrations import Demonstrations
 from snds.policy import Policy, float64_copy
+from snds.rollout import guarded_step, policy_guard
 
 
 @dataclass(frozen=True)
@@ -36,8 +37,15 @@ class StabilityReport:
         samples_checked: States at which the decrease condition was checked (0 for a policy
             without a Lyapunov function).
         decrease_violations: States where grad V . pi > -a(x) beyond rounding error.
-        largest_safe_dt: Largest Euler step (s) that decreases V at every sampled state (NaN
-            for a policy without a Lyapunov function); compare with ``dt``.
+        largest_safe_dt: Largest Euler step (s) that decreases V at every sampled state and at
+            every state visited by the rollouts (NaN for a policy without a Lyapunov
+            function); compare with ``dt``: plain Euler at a step above it may cycle.
+        largest_safe_dt_on_rollouts: The same over the visited states only (stiff spots of
+            the field near the target are found there rather than by random sampling).
+        integrator: "guarded euler" for a policy with a Lyapunov function (see
+            :func:`snds.rollout.guarded_step`), else "euler".
+        shortened_fraction: Fraction of rollouts in which the guard shortened a step, i.e.
+            where plain Euler at ``dt`` would not have decreased V (0 without a guard).
         box: Half-width of the box of random starts, in user units.
         horizon: Duration of each rollout, in seconds.
         dt: Time step of the rollouts, in seconds.
@@ -53,6 +61,9 @@ class StabilityReport:
     samples_checked: int
     decrease_violations: int
     largest_safe_dt: float
+    largest_safe_dt_on_rollouts: float
+    integrator: str
+    shortened_fraction: float
     box: float
     horizon: float
     dt: float
@@ -164,11 +175,13 @@ def check_stability(
     Rollouts start uniformly in a box of half-width ``box_factor`` x the extent (the largest
     distance of a demonstrated position from the target) around the target, and run for
     ``horizon_factor`` x the longest demonstration's duration with Euler steps of the
-    demonstrations' mean time step. A rollout has converged if it ends within
-    ``tolerance_factor`` x the extent of the target: the robot must get there in useful
-    time, not only asymptotically. Rollouts of a policy with a Lyapunov function stop early
-    once they are provably settled (see :func:`_roll_out_and_settle`). Everything
-    runs in float64.
+    demonstrations' mean time step, guarded (see :func:`snds.rollout.guarded_step`) for a
+    policy with a Lyapunov function; the report says in how many rollouts the guard had to
+    shorten a step, and the largest step that is safe along the rollouts. A rollout has
+    converged if it ends within ``tolerance_factor`` x the extent of the target: the robot
+    must get there in useful time, not only asymptotically. Rollouts of a policy with a
+    Lyapunov function stop early once they are provably settled (see
+    :func:`_roll_out_and_settle`). Everything runs in float64.
 
     Arguments:
         policy: The policy (a copy is evaluated in float64; the original is not changed).
@@ -206,10 +219,16 @@ def check_stability(
         policy, arrivals.final_state[final > tolerance], speed=demos.max_speed(), extent=extent
     )
     times = arrived[arrived >= 0].double() * dt
-    violations, checked, safe_dt = 0, 0, float("nan")
+    violations, checked = 0, 0
+    safe_dt = safe_dt_rollouts = float("nan")
+    if policy.stable:
+        upper = 10.0 * demos.max_duration()
+        visited = arrivals.visited
+        if len(visited) > chunk:
+            visited = visited[torch.as_tensor(rng.choice(len(visited), chunk, replace=False))]
+        safe_dt = safe_dt_rollouts = largest_safe_step(policy, visited, upper=upper)
     if policy.stable and samples > 0:
         points = _uniform_box(target, sample_box_factor * extent, samples, rng)
-        safe_dt = 10.0 * demos.max_duration()
         for begin in range(0, samples, chunk):
             batch = torch.as_tensor(points[begin : begin + chunk])
             violations += decrease_violations(policy, batch)
@@ -226,6 +245,9 @@ def check_stability(
         samples_checked=checked,
         decrease_violations=violations,
         largest_safe_dt=safe_dt,
+        largest_safe_dt_on_rollouts=safe_dt_rollouts,
+        integrator="guarded euler" if policy.stable else "euler",
+        shortened_fraction=float(arrivals.shortened.double().mean()),
         box=box_factor * extent,
         horizon=horizon,
         dt=dt,
@@ -262,6 +284,8 @@ class _Arrivals:
     final_state: torch.Tensor  # (B, n)
     final_distance: torch.Tensor  # (B,)
     arrival_step: torch.Tensor  # (B,), -1 if not within the tolerance at the end
+    shortened: torch.Tensor  # (B,) bool, a step of the rollout was shortened by the guard
+    visited: torch.Tensor  # (M, n), states along the rollouts (every ``every`` steps)
 
 
 @torch.no_grad()
@@ -275,33 +299,45 @@ def _roll_out_and_settle(
     tolerance: float,
     every: int = 10,
 ) -> _Arrivals:
-    """Euler rollouts that stop integrating each start once it has settled for good.
+    """Rollouts that stop integrating each start once it has settled for good.
 
-    With a Lyapunov function, V >= d |x - x*|^2 (model coordinates), so the sublevel set
-    {V < d r^2} lies inside the ball of radius r = tolerance / 2, and the flow never leaves
-    it since V never increases along the flow. A start whose state enters that set is
-    settled: it would still be within the tolerance at the end of the horizon, so it is no
-    longer integrated. This makes the check cost the time the rollouts take to arrive, not the
-    whole horizon. A policy without a Lyapunov function is integrated for the whole horizon.
+    A policy with a Lyapunov function is integrated with the guarded Euler step
+    (:func:`snds.rollout.guarded_step`), the discrete-time counterpart of its guarantee, and
+    each rollout records whether a step had to be shortened (where it did not, the rollout is
+    exactly the plain Euler one). V >= d |x - x*|^2 (model coordinates), so the sublevel set
+    {V < d r^2} lies inside the ball of radius r = tolerance / 2, and guarded steps never
+    leave it since they never increase V. A start whose state enters that set is settled: it
+    would still be within the tolerance at the end of the horizon, so it is no longer
+    integrated. This makes the check cost the time the rollouts take to arrive, not the whole
+    horizon. A policy without a Lyapunov function takes plain Euler steps for the whole
+    horizon.
     """
     x = starts.clone()
     active = torch.arange(len(starts))
     last_outside = torch.full((len(starts),), -1, dtype=torch.long)
+    shortened = torch.zeros(len(starts), dtype=torch.bool)
+    visited = []
     level = None
     if policy.stable:
         radius = 0.5 * tolerance / policy.normalization.length
         level = policy.lyapunov.quadratic * radius**2
+        lyapunov, rate = policy_guard(policy)
     for step in range(steps + 1):
-        if step > 0:
+        if step > 0 and level is not None:
+            x[active], h = guarded_step(policy, lyapunov, x[active], dt=dt, rate=rate)
+            shortened[active[h < dt]] = True
+        elif step > 0:
             x[active] = x[active] + dt * policy(x[active])
         outside = (x[active] - target).norm(dim=-1) > tolerance
         last_outside[active[outside]] = step
-        if level is not None and step % every == 0:
-            settled = policy.lyapunov(policy.to_model(x[active])) < level
-            active = active[~settled]
+        if step % every == 0:
+            visited.append(x[active].clone())
+            if level is not None:
+                settled = policy.lyapunov(policy.to_model(x[active])) < level
+                active = active[~settled]
         if len(active) == 0:
             break
     final = (x - target).norm(dim=-1)
     inside = final <= tolerance
     arrival = torch.where(inside, last_outside + 1, torch.full_like(last_outside, -1))
-    return _Arrivals(x, final, arrival)
+    return _Arrivals(x, final, arrival, shortened, torch.cat(visited))
