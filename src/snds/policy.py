@@ -220,7 +220,9 @@ class Policy(nn.Module, ABC):
     def predict(self, x: np.ndarray) -> np.ndarray:
         """NumPy convenience: velocities at positions (*, n), both in user units."""
         param = next(self.parameters())
-        return self(torch.as_tensor(x, dtype=param.dtype, device=param.device)).cpu().numpy()
+        # A copy: demonstrations' arrays are read-only, which torch.as_tensor warns about.
+        x = torch.tensor(np.asarray(x), dtype=param.dtype, device=param.device)
+        return self(x).cpu().numpy()
 
 
 class StablePolicy(Policy):
