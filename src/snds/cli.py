@@ -23,9 +23,9 @@ from snds.data import (
 )
 from snds.errors import ConfigError, SNDSError
 from snds.evaluate import evaluate
-from snds.io import load_model, save_model, to_jsonable, write_json
+from snds.io import load_model, remove_temporaries, save_model, to_jsonable, write_json
 from snds.policy import PolicyConfig, StablePolicy
-from snds.train import TrainConfig, fit
+from snds.train import CHECKPOINT, TrainConfig, fit
 
 
 def _index_list(text: str) -> list[int]:
@@ -121,6 +121,14 @@ def _build_parser() -> argparse.ArgumentParser:
     )
     train.add_argument("--unconstrained", action="store_true", help="behavioural cloning")
     train.add_argument("--device", default="cpu", help="torch device (cpu, cuda, ...)")
+    train.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue an interrupted run from OUT/checkpoint.safetensors (same arguments)",
+    )
+    train.add_argument(
+        "--checkpoint-every", type=int, default=200, help="steps between checkpoints"
+    )
     _check_arguments(train)
     train.set_defaults(run=_train)
 
@@ -283,8 +291,27 @@ def _train(args: argparse.Namespace) -> int:
         config=policy_config,
         seed=args.seed,
     )
-    result = fit(policy, demos, split, train_config, progress=not args.quiet)
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"--out {out}: is a file, not a directory")
+    remove_temporaries(out)
+    checkpoint = out / CHECKPOINT
+    if not args.resume:
+        checkpoint.unlink(missing_ok=True)
+    elif not checkpoint.is_file() and not args.quiet:
+        print(f"snds: no checkpoint in {out}: training from the start", file=sys.stderr)
+    result = fit(
+        policy,
+        demos,
+        split,
+        train_config,
+        progress=not args.quiet,
+        checkpoint=checkpoint,
+        checkpoint_every=args.checkpoint_every,
+    )
     policy.to("cpu")
+    # Results of an earlier run must not sit beside the new model if this one is killed.
+    for name in ("metrics.json", "loss.json"):
+        (out / name).unlink(missing_ok=True)
     record = {
         "data": _source(args),
         "split": split_record,
@@ -306,6 +333,8 @@ def _train(args: argparse.Namespace) -> int:
     write_json(out / "metrics.json", to_jsonable(metrics))
     if args.plot:
         _write_plots(policy, demos, out, result.history)
+    # Only now is the run complete: until here a kill leaves the checkpoint to resume from.
+    checkpoint.unlink(missing_ok=True)
     if not args.quiet:
         _summarise(out, metrics)
     return 0

@@ -55,6 +55,17 @@ def atomic_write(path: Path, write: Any) -> None:
         raise
 
 
+def remove_temporaries(directory: Path) -> None:
+    """Removes the temporary files that :func:`atomic_write` left in ``directory`` when killed.
+
+    Only for a folder that one process writes at a time (a model directory being trained).
+    """
+    directory = Path(directory)
+    if directory.is_dir():
+        for path in directory.glob(".*.tmp"):
+            path.unlink(missing_ok=True)
+
+
 def write_json(path: Path, data: dict) -> None:
     """Writes JSON atomically, with sorted keys and an indent for diffs."""
 

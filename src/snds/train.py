@@ -3,18 +3,23 @@
 from __future__ import annotations
 
 import copy
+import hashlib
+import json
 import math
 import sys
 import time
 from dataclasses import asdict, dataclass, field
+from pathlib import Path
 
 import torch
+from safetensors import SafetensorError, safe_open
+from safetensors.torch import load_file, save_file
 from tqdm.auto import tqdm
 
 from snds.data.demonstrations import Demonstrations, Split
-from snds.errors import ConfigError, SNDSError
-from snds.losses import VELOCITY_SHAPES, make_samples, velocity_loss, window_loss
-from snds.policy import StablePolicy
+from snds.errors import CheckpointError, ConfigError, SNDSError
+from snds.losses import VELOCITY_SHAPES, Samples, make_samples, velocity_loss, window_loss
+from snds.policy import Policy, StablePolicy
 
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
 
@@ -138,6 +143,8 @@ def fit(
     config: TrainConfig,
     *,
     progress: bool = True,
+    checkpoint: Path | None = None,
+    checkpoint_every: int = 200,
 ) -> TrainResult:
     """Fits a policy to demonstrations (in place) by minimising the loss of paper eq. (5).
 
@@ -145,16 +152,30 @@ def fit(
     jumps far above its best restores the last good weights, halves the learning rate and
     goes on, so a bad step never needs a manual rerun.
 
+    With ``checkpoint``, the whole state of the optimisation is written there every
+    ``checkpoint_every`` steps and at the end (see :func:`save_checkpoint`), and a fit that
+    finds a checkpoint there continues from it: a fit killed midway and started again gives
+    the same weights, bit for bit, as one that was never interrupted.
+
     Arguments:
         policy: The policy to train; moved to ``config.dtype`` and ``config.device``.
         demos: The demonstrations, in user units.
         split: Which samples train (the rest are ignored here).
         config: The optimisation settings.
         progress: Show a progress bar (only on a terminal).
+        checkpoint: A ``.safetensors`` file to resume from if it exists, and to write.
+        checkpoint_every: Steps between checkpoints.
 
     Returns:
-        The loss history and timing.
+        The loss history and timing (both counting the steps before a resume).
+
+    Raises:
+        CheckpointError: If the checkpoint is corrupted, or was made with other settings, an
+            other architecture or other training data.
+        TrainingError: If the loss keeps diverging.
     """
+    if checkpoint_every < 1:
+        raise ConfigError(f"checkpoint_every must be >= 1, got {checkpoint_every}")
     dtype = DTYPES[config.dtype]
     policy.to(device=config.device, dtype=dtype)
     samples = make_samples(demos, policy.normalization, split, window=config.window).to(
@@ -162,52 +183,219 @@ def fit(
     )
     generator = torch.Generator().manual_seed(config.seed)
     optimizer = torch.optim.Adam(policy.parameters(), lr=config.lr)
-    result = TrainResult()
-    good_state = copy.deepcopy(policy.state_dict())
-    best = smoothed = math.inf
-    since_best, lr_scale = 0, 1.0
+    state = _State(good=copy.deepcopy(policy.state_dict()))
+    identity = _identity(policy, config, samples)
+    if checkpoint is not None and Path(checkpoint).is_file():
+        state = _restore(Path(checkpoint), identity, policy, optimizer, generator)
+    result = state.result
     show = progress and sys.stderr.isatty()
-    start = time.perf_counter()
-    bar = tqdm(range(config.steps), disable=not show, desc="train", leave=False)
-    for step in bar:
+    start = time.perf_counter() - result.seconds
+    bar = tqdm(
+        range(state.step, config.steps),
+        initial=state.step,
+        total=config.steps,
+        disable=not show or state.finished,
+        desc="train",
+        leave=False,
+    )
+    for step in [] if state.finished else bar:
+        state.step = step
+        if checkpoint is not None and step > 0 and step % checkpoint_every == 0:
+            result.seconds = time.perf_counter() - start
+            save_checkpoint(Path(checkpoint), state, identity, policy, optimizer, generator)
         loss = _loss(policy, samples, config, generator)
         value = float(loss.detach())
-        if not math.isfinite(value) or value > 1e3 * max(best, 1e-8):
+        if not math.isfinite(value) or value > 1e3 * max(state.best, 1e-8):
             result.restarts += 1
             if result.restarts > config.max_restarts:
                 raise TrainingError(
                     f"loss diverged {result.restarts} times (last {value:.3g}); try a lower lr"
                 )
-            policy.load_state_dict(good_state)
+            policy.load_state_dict(state.good)
             optimizer = torch.optim.Adam(policy.parameters(), lr=config.lr)
-            lr_scale *= 0.5
+            state.lr_scale *= 0.5
             continue
         for group in optimizer.param_groups:
-            group["lr"] = lr_scale * _learning_rate(step, config)
+            group["lr"] = state.lr_scale * _learning_rate(step, config)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(policy.parameters(), config.grad_clip)
         optimizer.step()
         result.history.append(value)
-        smoothed = value if smoothed == math.inf else 0.95 * smoothed + 0.05 * value
-        if smoothed < best * (1 - config.min_improvement):
-            best, since_best = smoothed, 0
+        state.smoothed = (
+            value if state.smoothed == math.inf else 0.95 * state.smoothed + 0.05 * value
+        )
+        if state.smoothed < state.best * (1 - config.min_improvement):
+            state.best, state.since_best = state.smoothed, 0
             if step % 50 == 0:
-                good_state = copy.deepcopy(policy.state_dict())
+                state.good = copy.deepcopy(policy.state_dict())
         else:
-            since_best += 1
+            state.since_best += 1
         if step % 20 == 0:
-            bar.set_postfix(loss=f"{smoothed:.2e}")
-        if config.patience and since_best >= config.patience:
+            bar.set_postfix(loss=f"{state.smoothed:.2e}")
+        if config.patience and state.since_best >= config.patience:
             result.stopped = "plateau"
             break
         if config.max_seconds is not None and time.perf_counter() - start > config.max_seconds:
             result.stopped = "time"
             break
     bar.close()
-    result.seconds = time.perf_counter() - start
-    result.steps = len(result.history)
+    if not state.finished:
+        result.seconds = time.perf_counter() - start
+        result.steps = len(result.history)
+        state.finished = True
+        if checkpoint is not None:
+            # A kill after training but before the caller saved the model resumes from here
+            # without training again.
+            save_checkpoint(Path(checkpoint), state, identity, policy, optimizer, generator)
     return result
+
+
+# Checkpoints: the whole optimisation state in one safetensors file (tensors), with the
+# scalars, settings and identity as JSON in its header, so one atomic rename writes it all.
+
+CHECKPOINT_VERSION = 1
+#: The checkpoint's name in a model directory (``snds train --resume`` looks for it there).
+CHECKPOINT = "checkpoint.safetensors"
+_RECORD = "snds_checkpoint"
+
+
+@dataclass
+class _State:
+    """Everything of a fit that changes from step to step, besides weights and optimiser."""
+
+    good: dict[str, torch.Tensor]
+    result: TrainResult = field(default_factory=TrainResult)
+    step: int = 0
+    best: float = math.inf
+    smoothed: float = math.inf
+    since_best: int = 0
+    lr_scale: float = 1.0
+    finished: bool = False
+
+
+def _identity(policy: Policy, config: TrainConfig, samples: Samples) -> dict:
+    """What must be the same for a checkpoint to continue a fit: settings, model, data."""
+    digest = hashlib.sha256()
+    for tensor in vars(samples).values():
+        digest.update(tensor.detach().cpu().contiguous().numpy().tobytes())
+    identity = {
+        "train": config.to_dict(),
+        "kind": policy.kind,
+        "dim": policy.dim,
+        "policy": policy.config.to_dict(),
+        "normalization": policy.normalization.to_dict(),
+        "data_sha256": digest.hexdigest(),
+    }
+    # As it reads back from the file (tuples become lists), so the two compare equal.
+    return json.loads(json.dumps(identity))
+
+
+def save_checkpoint(
+    path: Path,
+    state: _State,
+    identity: dict,
+    policy: Policy,
+    optimizer: torch.optim.Optimizer,
+    generator: torch.Generator,
+) -> None:
+    """Writes the state of a fit atomically (see :func:`fit`); safetensors and JSON only."""
+    from snds.io import atomic_write
+
+    tensors = {f"policy.{k}": v for k, v in policy.state_dict().items()}
+    tensors |= {f"good.{k}": v for k, v in state.good.items()}
+    optimizer_state = optimizer.state_dict()
+    for index, entries in optimizer_state["state"].items():
+        tensors |= {f"optimizer.{index}.{k}": v for k, v in entries.items()}
+    tensors["generator"] = generator.get_state()
+    tensors["history"] = torch.tensor(state.result.history, dtype=torch.float64)
+    tensors = {k: v.detach().cpu().contiguous() for k, v in tensors.items()}
+    result = {k: v for k, v in asdict(state.result).items() if k != "history"}
+    record = {
+        "version": CHECKPOINT_VERSION,
+        "identity": identity,
+        "step": state.step,
+        "best": state.best,
+        "smoothed": state.smoothed,
+        "since_best": state.since_best,
+        "lr_scale": state.lr_scale,
+        "finished": state.finished,
+        "result": result,
+        "optimizer_groups": optimizer_state["param_groups"],
+    }
+    metadata = {_RECORD: json.dumps(record)}
+    atomic_write(path, lambda tmp: save_file(tensors, str(tmp), metadata=metadata))
+
+
+def _restore(
+    path: Path,
+    identity: dict,
+    policy: Policy,
+    optimizer: torch.optim.Optimizer,
+    generator: torch.Generator,
+) -> _State:
+    """Loads a checkpoint into ``policy``, ``optimizer`` and ``generator``; the rest returned."""
+    try:
+        with safe_open(str(path), framework="pt") as file:
+            record = json.loads((file.metadata() or {})[_RECORD])
+        tensors = load_file(str(path))
+        if record.get("version") != CHECKPOINT_VERSION:
+            raise CheckpointError(
+                f"{path}: checkpoint version {record.get('version')!r}, this snds reads "
+                f"{CHECKPOINT_VERSION}"
+            )
+        if record["identity"] != identity:
+            theirs, ours = record["identity"], identity
+            differ = [k for k in ours if theirs.get(k) != ours[k]]
+            details = [
+                f"{k}.{f}: {theirs[k].get(f)!r} -> {ours[k][f]!r}"
+                for k in differ
+                if isinstance(ours[k], dict) and isinstance(theirs.get(k), dict)
+                for f in ours[k]
+                if theirs[k].get(f) != ours[k][f]
+            ]
+            names = {
+                "train": "train settings",
+                "kind": "method",
+                "dim": "dimension",
+                "policy": "architecture",
+                "normalization": "normalisation",
+                "data_sha256": "training data",
+            }
+            raise CheckpointError(
+                f"{path}: made with other {', '.join(names.get(k, k) for k in differ)} "
+                f"({'; '.join(details[:3]) or 'the training data differ'}); "
+                "train without resuming, or with the same arguments"
+            )
+
+        def part(prefix: str) -> dict[str, torch.Tensor]:
+            return {k[len(prefix) :]: v for k, v in tensors.items() if k.startswith(prefix)}
+
+        policy.load_state_dict(part("policy."))
+        entries: dict[int, dict[str, torch.Tensor]] = {}
+        for key, tensor in part("optimizer.").items():
+            index, name = key.split(".", 1)
+            entries.setdefault(int(index), {})[name] = tensor
+        optimizer.load_state_dict({"state": entries, "param_groups": record["optimizer_groups"]})
+        generator.set_state(tensors["generator"])
+        history = tensors["history"].tolist()
+        state = _State(
+            good={k: v.to(policy.center.device) for k, v in part("good.").items()},
+            result=TrainResult(history=history, **record["result"]),
+            step=int(record["step"]),
+            best=float(record["best"]),
+            smoothed=float(record["smoothed"]),
+            since_best=int(record["since_best"]),
+            lr_scale=float(record["lr_scale"]),
+            finished=bool(record["finished"]),
+        )
+    except CheckpointError:
+        raise
+    # A damaged file can fail in the reader (SafetensorError, OSError), in the JSON, or in a
+    # missing or misshapen entry (KeyError, TypeError, ValueError, RuntimeError from torch).
+    except (SafetensorError, OSError, KeyError, TypeError, ValueError, RuntimeError) as error:
+        raise CheckpointError(f"{path}: corrupted checkpoint ({error})") from error
+    return state
 
 
 def _loss(
