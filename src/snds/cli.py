@@ -512,7 +512,17 @@ def _summarise(out: Path, metrics: dict) -> None:
         f"DTW {metrics['dtw_paper']:.4f} (paper scale), "
         f"converged {stability['converged_fraction']:.3f} of {stability['rollouts']} rollouts, "
         f"{stability['decrease_violations']} decrease violations in "
-        f"{stability['samples_checked']} samples"
+        f"{stability['samples_checked']} samples" + _guard_summary(stability)
+    )
+
+
+def _guard_summary(stability: dict) -> str:
+    if stability.get("integrator") != "guarded euler":
+        return ""
+    return (
+        f"; largest safe Euler step {stability['largest_safe_dt']:.3g} s "
+        f"(data: {stability['dt']:.3g} s), guard shortened steps in "
+        f"{stability['shortened_fraction']:.0%} of rollouts"
     )
 
 
