@@ -10,8 +10,11 @@ Three sweeps, each resumable (a rerun skips the runs already in its folder):
     python benchmarks/sweeps.py --methods snds,bc,lpvds --seeds 3 --only paper8
 
 Runs go to ``runs/sweeps/<name>/`` (models included); each sweep's ``results.csv``,
-``summary.md`` and figures are copied to ``benchmarks/results/sweeps/<name>/``, and its
-summary goes between the ``sweep-<name>`` markers of ``benchmarks/README.md``.
+``results.jsonl``, ``sweep.json``, ``summary.md`` and figures are copied to
+``benchmarks/results/sweeps/<name>/``, and its summary goes between the ``sweep-<name>``
+markers of ``benchmarks/README.md``. A sweep whose ``runs/`` folder is gone (a fresh clone,
+another machine) starts from the committed ``results.jsonl``: its finished rows are not run
+again, though their models are not there for the streamline figure.
 """
 
 from __future__ import annotations
@@ -42,7 +45,15 @@ SWEEPS: dict[str, tuple[str, int | None]] = {
     "paper8-demos1": ("paper8", 1),
     "multi": ("multi", None),
 }
-COPIED = ("results.csv", "summary.md", "mse_violin.png", "train_time.png", "converged.png")
+COPIED = (
+    "results.csv",
+    "results.jsonl",
+    "sweep.json",
+    "summary.md",
+    "mse_violin.png",
+    "train_time.png",
+    "converged.png",
+)
 
 
 def run(name: str, args: argparse.Namespace, settings: SweepSettings) -> str:
@@ -52,9 +63,13 @@ def run(name: str, args: argparse.Namespace, settings: SweepSettings) -> str:
         resolve_motions(motions), resolve_methods(args.methods), seeds=args.seeds, demos=demos
     )
     out = args.runs / name
+    copy = HERE / "results" / "sweeps" / name
+    if not (out / "results.jsonl").exists() and (copy / "results.jsonl").exists():
+        out.mkdir(parents=True, exist_ok=True)
+        for file in ("results.jsonl", "sweep.json"):
+            shutil.copyfile(copy / file, out / file)
     rows = run_sweep(tasks, out=out, settings=settings, jobs=args.jobs)
     plot_benchmark(rows, out)
-    copy = HERE / "results" / "sweeps" / name
     copy.mkdir(parents=True, exist_ok=True)
     files = COPIED + (("streamlines.png",) if args.streamlines else ())
     for file in files:
