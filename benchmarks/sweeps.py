@@ -30,6 +30,7 @@ from _readme import write_readme_section
 
 from snds.benchmark import (
     SweepSettings,
+    finished_rows,
     make_tasks,
     plot_benchmark,
     resolve_methods,
@@ -68,6 +69,9 @@ def run(name: str, args: argparse.Namespace, settings: SweepSettings) -> str:
         out.mkdir(parents=True, exist_ok=True)
         for file in ("results.jsonl", "sweep.json"):
             shutil.copyfile(copy / file, out / file)
+    if args.done_only:
+        done = finished_rows(out)
+        tasks = [task for task in tasks if task.key in done]
     rows = run_sweep(tasks, out=out, settings=settings, jobs=args.jobs)
     plot_benchmark(rows, out)
     copy.mkdir(parents=True, exist_ok=True)
@@ -79,8 +83,13 @@ def run(name: str, args: argparse.Namespace, settings: SweepSettings) -> str:
         f"![{file}](results/sweeps/{name}/{file})" for file in files if file.endswith(".png")
     )
     demos_text = "all 7 demonstrations" if demos is None else f"{demos} demonstration(s)"
+    seeds = (
+        f"up to {args.seeds} seeds (the runs finished so far)"
+        if args.done_only
+        else (f"{args.seeds} seeds")
+    )
     return (
-        f"#### {name}: {motions}, {demos_text}, {args.seeds} seeds\n\n"
+        f"#### {name}: {motions}, {demos_text}, {seeds}\n\n"
         f"`python benchmarks/sweeps.py --only {name}` (or `snds benchmark --methods "
         f"{args.methods} --motions {motions}"
         + (f" --demos {demos}" if demos else "")
@@ -101,6 +110,11 @@ def main() -> None:
     parser.add_argument("--runs", type=Path, default=Path("runs/sweeps"))
     parser.add_argument("--streamlines", action="store_true", help="also copy streamlines.png")
     parser.add_argument("--no-readme", action="store_true")
+    parser.add_argument(
+        "--done-only",
+        action="store_true",
+        help="run nothing: summarise the runs of these methods and seeds already finished",
+    )
     args = parser.parse_args()
     settings = SweepSettings(rollouts=args.rollouts, samples=args.samples)
     machine = f"{platform.machine()}, {os.cpu_count()} cores, {platform.platform()}"

@@ -374,6 +374,11 @@ def _read_results(path: Path) -> dict[str, dict]:
     return rows
 
 
+def finished_rows(out: Path) -> dict[str, dict]:
+    """The result rows already in a sweep folder, by :attr:`Task.key`."""
+    return _read_results(Path(out) / RESULTS_FILE)
+
+
 def _append_row(path: Path, row: dict) -> None:
     with open(path, "a") as handle:
         handle.write(json.dumps(row) + "\n")
