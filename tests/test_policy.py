@@ -142,3 +142,20 @@ def test_no_velocity_spike_at_or_next_to_the_target(spiral, dtype):
     assert torch.isfinite(pi).all()
     assert pi[0].abs().max() <= 10 * eps * speed
     assert (pi.norm(dim=-1) <= f.norm(dim=-1) + 1e-4 * speed).all()
+
+
+def test_near_target_decay_is_the_stated_profile_and_holds(spiral):
+    config = dataclasses.replace(SMALL, decay_rate=0.5, decay_far=2.0, decay_near=3.0)
+    policy = _scrambled(make_policy(spiral, config, seed=4))
+    # By hand: rate 0.5 + 3 (1 - r / 0.2)_+ + 2 (r - 1)_+ at radii 0, 0.1, 0.2, 0.5 and 3.
+    radii = torch.tensor([0.0, 0.1, 0.2, 0.5, 3.0], dtype=torch.float64)
+    x = torch.stack([radii, torch.zeros_like(radii)], dim=-1)
+    v = torch.ones(5, dtype=torch.float64)
+    expected = torch.tensor([3.5, 2.0, 0.5, 0.5, 4.5], dtype=torch.float64)
+    torch.testing.assert_close(policy.decay(v, x), expected)
+    # The projection honours it: grad V . pi <= -a at random states near and far.
+    x = torch.cat([0.05 * torch.randn(5000, 2), 5 * torch.randn(5000, 2)]).double()
+    v, grad_v = policy.lyapunov.value_and_grad(x)
+    lhs = (grad_v * policy.field(x)).sum(-1)
+    slack = 1e-9 * (grad_v.norm(dim=-1) * policy.nominal(x).norm(dim=-1) + v)
+    assert (lhs <= -policy.decay(v, x) + slack).all()

@@ -79,6 +79,11 @@ class PolicyConfig:
         decay_far: Extra decay rate per unit of distance beyond the demonstrations' extent:
             a(x) = V(x) (rho + decay_far max(|x| - 1, 0)) in model coordinates. It speeds up
             the return from far away without constraining the fit on the data (|x| <= 1).
+        decay_near: Extra decay rate at the target, fading linearly to 0 at ``near_radius``:
+            a(x) gains V decay_near (1 - |x| / near_radius)_+. Near the target the
+            demonstrations themselves converge much faster than rho allows, so this speeds up
+            the final approach from directions the data do not cover (0: off).
+        near_radius: Radius of that region, in model coordinates.
         rectifier: r in the projection ("relu" as in the paper, or "softplus").
         stable: False gives the unconstrained policy pi = f (behavioural cloning).
     """
@@ -92,6 +97,8 @@ class PolicyConfig:
     quadratic: float = 0.05
     decay_rate: float = 0.5
     decay_far: float = 2.0
+    decay_near: float = 0.0
+    near_radius: float = 0.2
     rectifier: str = "relu"
     stable: bool = True
 
@@ -101,6 +108,11 @@ class PolicyConfig:
         if not (self.decay_rate >= 0 and self.decay_far >= 0):
             raise ConfigError(
                 f"decay_rate and decay_far must be >= 0, got {self.decay_rate} and {self.decay_far}"
+            )
+        if not (self.decay_near >= 0 and self.near_radius > 0):
+            raise ConfigError(
+                f"need decay_near >= 0 and near_radius > 0, got {self.decay_near} and "
+                f"{self.near_radius}"
             )
         if self.rectifier not in RECTIFIERS:
             raise ConfigError(
@@ -285,14 +297,19 @@ class StablePolicy(Policy):
         return (out[:-1] - out[-1]).reshape(x.shape)
 
     def decay(self, v: Tensor, x: Tensor) -> Tensor:
-        """The required decrease rate a(x) = V (rho + rho_far (|x| - 1)_+), shape (*,).
+        """The required decrease rate, shape (*,):
+        a(x) = V (rho + rho_far (|x| - 1)_+ + rho_near (1 - |x| / r_near)_+).
 
         Arguments:
             v: V at the states, shape (*,).
             x: The states in model coordinates, shape (*, n).
         """
-        beyond = (x.norm(dim=-1) - 1.0).clamp_min(0.0)
-        return v * (self.config.decay_rate + self.config.decay_far * beyond)
+        config = self.config
+        radius = x.norm(dim=-1)
+        rate = config.decay_rate + config.decay_far * (radius - 1.0).clamp_min(0.0)
+        if config.decay_near:
+            rate = rate + config.decay_near * (1.0 - radius / config.near_radius).clamp_min(0.0)
+        return v * rate
 
     def field(self, x: Tensor) -> Tensor:
         """The policy in model coordinates, (*, n) -> (*, n)."""
