@@ -23,6 +23,7 @@ from snds.baselines.seds import SEDS, SEDSPolicy
 from snds.errors import SNDSError
 from snds.method import Fitted, Method, NeuralMethod
 from snds.policy import Policy, PolicyConfig, StablePolicy
+from snds.se3 import PosePolicy
 
 __all__ = ["METHODS", "POLICY_KINDS", "Fitted", "Method", "NeuralMethod", "get_method"]
 
@@ -49,6 +50,8 @@ POLICY_KINDS: dict[str, type[Policy]] = {
     "lpvds": LPVDSPolicy,
     "seds": SEDSPolicy,
     "sdsef": SDSEFPolicy,
+    # SE(3): the stable policy on position and rotation vector (snds.se3).
+    "se3": PosePolicy,
 }
 
 

@@ -1,0 +1,195 @@
+"""SE(3) pose policies: quaternion maths, the double cover, SO(3) rollouts, learning a pose task."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import roma
+import torch
+from scipy.spatial.transform import Rotation
+
+from snds.data import no_split
+from snds.data.poses import with_synthetic_orientations
+from snds.io import load_model, save_model
+from snds.se3 import (
+    PosePolicy,
+    angular_velocities,
+    check_pose_stability,
+    left_jacobian,
+    left_jacobian_inverse,
+    make_pose_policy,
+    pose_accuracy,
+    relative_rotvec,
+    rollout_poses,
+    rotate,
+)
+from snds.train import TrainConfig, fit
+
+from conftest import SMALL, spiral_demos
+
+# One thread: these networks are tiny, and two threads on a busy 2-core machine spin-wait.
+torch.set_num_threads(1)
+
+
+def random_quats(count: int, seed: int = 0) -> torch.Tensor:
+    return roma.random_unitquat(
+        count, dtype=torch.float64, generator=torch.Generator().manual_seed(seed)
+    )
+
+
+@pytest.fixture(scope="module")
+def pose_demos():
+    # A decaying spiral in the plane, lifted to poses turning by ~90 degrees to the target.
+    return with_synthetic_orientations(
+        spiral_demos(count=2, samples=200), target_orientation=(0.0, 0.6, 0.0, 0.8), seed=1
+    )
+
+
+@pytest.fixture(scope="module")
+def untrained(pose_demos) -> PosePolicy:
+    policy, _ = make_pose_policy(pose_demos, config=SMALL, seed=0)
+    return policy.to(torch.float64).eval()
+
+
+@pytest.fixture(scope="module")
+def trained(pose_demos):
+    torch.manual_seed(0)
+    policy, tangent = make_pose_policy(pose_demos, config=SMALL, seed=0)
+    fit(policy, tangent, no_split(tangent), TrainConfig(steps=400, seed=0), progress=False)
+    return policy.to(torch.float64).eval()
+
+
+def test_log_exp_round_trip_over_all_of_so3():
+    # GIVEN random orientations (all of SO(3)) and random targets
+    q, target = random_quats(2000, 0), random_quats(2000, 1)
+    # WHEN the relative rotation vector is taken and applied back to the target
+    r = relative_rotvec(q, target)
+    back = rotate(r, target)
+    # THEN the angle is canonical and the orientation is recovered up to the sign
+    assert (r.norm(dim=-1) <= torch.pi + 1e-12).all()
+    assert torch.allclose((back * q).sum(-1).abs(), torch.ones(2000, dtype=torch.float64))
+
+
+def test_exp_log_round_trip_inside_the_ball():
+    # GIVEN rotation vectors of angle < pi, including tiny ones
+    r = torch.randn(1000, 3, dtype=torch.float64)
+    r = r / r.norm(dim=-1, keepdim=True) * torch.rand(1000, 1, dtype=torch.float64) * 3.1
+    r[:10] *= 1e-9
+    identity = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64)
+    # THEN log(exp(r)) = r
+    assert torch.allclose(relative_rotvec(rotate(r, identity.expand(1000, 4)), identity), r)
+
+
+def test_relative_rotvec_is_blind_to_both_signs():
+    q, target = random_quats(500, 2), random_quats(1, 3)[0]
+    r = relative_rotvec(q, target)
+    assert torch.allclose(relative_rotvec(-q, target), r, atol=1e-12)
+    assert torch.allclose(relative_rotvec(q, -target), r, atol=1e-12)
+
+
+def test_policy_output_is_the_same_for_q_and_minus_q(untrained):
+    # GIVEN random poses over all of SO(3)
+    p = torch.randn(500, 3, dtype=torch.float64) * 10
+    q = random_quats(500, 4)
+    # THEN the two quaternions of each orientation give the same linear and angular velocity
+    assert torch.allclose(untrained.twist(p, q), untrained.twist(p, -q), atol=1e-10)
+
+
+@pytest.mark.parametrize("scale", [1e-5, 0.5, 2.0, 3.1])
+def test_left_jacobian_is_the_derivative_of_exp(scale):
+    # GIVEN rotation vectors r and a small step delta
+    r = torch.randn(200, 3, dtype=torch.float64)
+    r = scale * r / r.norm(dim=-1, keepdim=True)
+    delta = 1e-6 * torch.randn(200, 3, dtype=torch.float64)
+    identity = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64).expand(200, 4)
+    # WHEN exp(r + delta) exp(r)^-1 is taken
+    step = roma.quat_product(
+        rotate(r + delta, identity), roma.quat_conjugation(rotate(r, identity))
+    )
+    # THEN it is exp(J_l(r) delta) to first order, and J_l^-1 inverts J_l
+    small = relative_rotvec(step, identity[0])
+    predicted = (left_jacobian(r) @ delta[..., None])[..., 0]
+    assert torch.allclose(small, predicted, atol=1e-11)
+    eye = torch.eye(3, dtype=torch.float64).expand(200, 3, 3)
+    assert torch.allclose(left_jacobian_inverse(r) @ left_jacobian(r), eye, atol=1e-9)
+
+
+class _Spinning:
+    """A stand-in for a policy: a state-dependent angular velocity, cheap enough for 10^4 steps."""
+
+    def twist(self, p: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
+        return torch.cat([-p, 3.0 * q[:, :3] + torch.tensor([1.0, -2.0, 0.5])], -1)
+
+
+def test_unit_norm_kept_over_ten_thousand_steps():
+    # GIVEN random start poses turned fast (about 3 rad/s) for 10,000 steps, in float64
+    p0 = torch.randn(64, 3, dtype=torch.float64)
+    q0 = random_quats(64, 5)
+    _, q = rollout_poses(_Spinning(), p0, q0, dt=0.01, steps=10_000)
+    # THEN every quaternion is unit
+    assert (q.norm(dim=-1) - 1).abs().max() < 1e-12
+
+
+def test_untrained_policy_keeps_unit_norm(untrained):
+    _, q = rollout_poses(
+        untrained, torch.randn(8, 3, dtype=torch.float64), random_quats(8, 8), dt=0.05, steps=200
+    )
+    assert (q.norm(dim=-1) - 1).abs().max() < 1e-12
+
+
+def test_so3_integration_is_exact_for_a_constant_turn():
+    # GIVEN a constant world-frame angular velocity and the exponential-map step
+    omega = torch.tensor([[0.3, -1.1, 0.7]], dtype=torch.float64)
+    q = random_quats(1, 6)
+    start = q
+    for _ in range(1000):
+        q = roma.quat_normalize(rotate(0.01 * omega, q))
+    # THEN after 10 s the orientation is exactly exp(10 omega) q0 (no Euler drift off SO(3))
+    expected = rotate(10.0 * omega, start)
+    assert float((q * expected).sum().abs()) == pytest.approx(1.0, abs=1e-12)
+
+
+def test_angular_velocities_recover_a_known_turn():
+    times = np.linspace(0, 2, 401)
+    omega = np.array([0.2, 0.5, -0.4])
+    rotations = Rotation.from_rotvec(times[:, None] * omega) * Rotation.from_quat([0, 0, 1, 0])
+    assert np.allclose(angular_velocities(rotations.as_quat(), times), omega, atol=1e-9)
+
+
+def test_decrease_holds_on_random_poses_before_training(untrained, pose_demos):
+    report = check_pose_stability(untrained, pose_demos, rollouts=0, samples=5_000)
+    assert report.samples_checked == 5_000
+    assert report.decrease_violations == 0
+
+
+@pytest.mark.slow
+def test_synthetic_pose_task_is_learned_and_converges(trained, untrained, pose_demos):
+    # GIVEN a policy trained briefly on the synthetic pose task
+    split = no_split_for(pose_demos)
+    accuracy = pose_accuracy(trained, pose_demos, split, [0, 1])
+    before = pose_accuracy(untrained, pose_demos, split, [0, 1])
+    # THEN it follows the demonstrated path and orientations far better than before training
+    assert accuracy["orientation_error_along"] < 0.15  # radians; the turn is ~1.6 rad
+    assert accuracy["orientation_error_along"] < 0.6 * before["orientation_error_along"]
+    assert accuracy["position_dtw"] < 0.3 * before["position_dtw"]
+    # AND reaches the target pose from random positions and all orientations
+    report = check_pose_stability(trained, pose_demos, rollouts=50, samples=2_000, seed=1)
+    assert report.converged_fraction == 1.0
+    assert report.decrease_violations == 0
+    assert report.max_final_angle <= report.angle_tolerance
+
+
+def no_split_for(pose_demos):
+    from snds.data.demonstrations import Split
+
+    return Split(tuple(np.ones(len(d.times), dtype=bool) for d in pose_demos))
+
+
+def test_save_load_round_trip(trained, tmp_path):
+    save_model(trained, tmp_path / "model")
+    loaded, description = load_model(tmp_path / "model")
+    assert isinstance(loaded, PosePolicy) and description["kind"] == "se3"
+    p = torch.randn(50, 3, dtype=torch.float64)
+    q = random_quats(50, 7)
+    assert torch.equal(loaded.twist(p, q), trained.twist(p, q))
+    assert loaded.config == trained.config
