@@ -130,6 +130,12 @@ def _build_parser() -> argparse.ArgumentParser:
         "--checkpoint-every", type=int, default=200, help="steps between checkpoints"
     )
     _check_arguments(train)
+    train.add_argument(
+        "--se3",
+        action="store_true",
+        help="learn a pose policy (position + orientation); automatic for pose files (CSV "
+        "with columns qx,qy,qz,qw, NPZ with 'quat'); position data get synthetic orientations",
+    )
     train.set_defaults(run=_train)
 
     evaluate_ = commands.add_parser("evaluate", help="evaluate a trained model")
@@ -237,6 +243,10 @@ def _build_parser() -> argparse.ArgumentParser:
 def _load_data(
     motion: str | None, data: Path | None, demos: int | list[int] | None
 ) -> Demonstrations:
+    if motion is None and demos is not None:
+        # Selected before the target is chosen: a file may end at several places.
+        select = list(range(demos)) if isinstance(demos, int) else demos
+        return load_demonstrations(data, select=select)
     loaded = load_lasa(motion) if motion is not None else load_demonstrations(data)
     if demos is None:
         return loaded
@@ -269,6 +279,8 @@ def _check_sizes(args: argparse.Namespace) -> None:
 
 def _train(args: argparse.Namespace) -> int:
     _check_sizes(args)
+    if args.se3 or (args.data is not None and _is_pose_file(args.data)):
+        return _train_se3(args)
     demos = _load_data(args.motion, args.data, args.demos)
     out = args.out or Path("runs") / (demos.name or Path(str(args.data)).stem)
     split_record = {
@@ -361,6 +373,8 @@ def _model_and_data(args: argparse.Namespace) -> tuple[StablePolicy, dict, Demon
 
 def _evaluate(args: argparse.Namespace) -> int:
     _check_sizes(args)
+    if _is_pose_model(args.model):
+        return _evaluate_se3(args)
     policy, description, demos = _model_and_data(args)
     metrics = evaluate(
         policy,
@@ -379,6 +393,8 @@ def _evaluate(args: argparse.Namespace) -> int:
 
 
 def _plot(args: argparse.Namespace) -> int:
+    if _is_pose_model(args.model):
+        return _plot_se3(args)
     policy, _, demos = _model_and_data(args)
     history = None
     loss_file = args.model / "loss.json"
@@ -523,6 +539,143 @@ def _guard_summary(stability: dict) -> str:
         f"; largest safe Euler step {stability['largest_safe_dt']:.3g} s "
         f"(data: {stability['dt']:.3g} s), guard shortened steps in "
         f"{stability['shortened_fraction']:.0%} of rollouts"
+    )
+
+
+# --- SE(3) pose policies (snds.se3) ------------------------------------------------------------
+
+
+def _is_pose_file(path: Path) -> bool:
+    from snds.data.poses import is_pose_file
+
+    return is_pose_file(path)
+
+
+def _is_pose_model(directory: Path) -> bool:
+    from snds.io import read_description
+
+    return read_description(directory).get("kind") == "se3"
+
+
+def _pose_data(motion: str | None, data: Path | None, demos, seed: int):
+    """Pose demonstrations: a pose file as it is, or position data (LASA, .mat, ...) lifted
+    with synthetic orientations seeded by ``seed`` (see
+    :func:`snds.data.poses.with_synthetic_orientations`)."""
+    from snds.data.poses import load_poses, with_synthetic_orientations
+
+    if data is not None and _is_pose_file(data):
+        select = list(range(demos)) if isinstance(demos, int) else demos
+        return load_poses(data, select=select)
+    return with_synthetic_orientations(_load_data(motion, data, demos), seed=seed)
+
+
+def _train_se3(args: argparse.Namespace) -> int:
+    from snds.se3 import evaluate_pose, make_pose_policy
+
+    poses = _pose_data(args.motion, args.data, args.demos, args.seed)
+    out = args.out or Path("runs") / f"{poses.name or Path(str(args.data)).stem}-se3"
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"--out {out}: is a file, not a directory")
+    config = PolicyConfig(decay_rate=args.decay_rate, stable=not args.unconstrained)
+    policy, demos = make_pose_policy(poses, config=config, seed=args.seed)
+    split_record = {
+        "test_fraction": args.test_fraction,
+        "seed": args.seed,
+        "test_demos": args.test_demos,
+    }
+    split = _make_split(demos, split_record)
+    train_config = TrainConfig(
+        steps=args.steps,
+        window=args.window,
+        velocity_shape=args.velocity_loss,
+        seed=args.seed,
+        device=args.device,
+    )
+    result = fit(policy, demos, split, train_config, progress=not args.quiet)
+    policy.to("cpu")
+    for name in ("metrics.json", "loss.json"):
+        (out / name).unlink(missing_ok=True)
+    source = {**_source(args), "orientation_seed": args.seed}
+    record = {
+        "data": source,
+        "split": split_record,
+        "train": train_config.to_dict(),
+        "train_result": {k: v for k, v in dataclasses.asdict(result).items() if k != "history"},
+    }
+    save_model(policy, out, extra=record)
+    write_json(out / "loss.json", {"history": result.history})
+    metrics = evaluate_pose(
+        policy, poses, split, seed=args.seed, rollouts=args.rollouts, samples=args.samples
+    )
+    metrics["train_seconds"] = result.seconds
+    write_json(out / "metrics.json", to_jsonable(metrics))
+    if args.plot:
+        from snds.se3 import plot_pose_policy
+
+        plot_pose_policy(policy, poses, out, history=result.history)
+    if not args.quiet:
+        _summarise_se3(out, metrics)
+    return 0
+
+
+def _pose_model_and_data(args: argparse.Namespace):
+    policy, description = load_model(args.model)
+    source = description.get("data", {})
+    seed = int(source.get("orientation_seed", 0))
+    if args.motion is not None or args.data is not None:
+        poses = _pose_data(args.motion, args.data, args.demos, seed)
+    elif "motion" in source or "file" in source:
+        data = Path(source["file"]) if "file" in source else None
+        poses = _pose_data(source.get("motion"), data, source.get("demos"), seed)
+    else:
+        raise SNDSError(f"{args.model}: no data recorded; pass --motion or --data")
+    return policy, description, poses
+
+
+def _evaluate_se3(args: argparse.Namespace) -> int:
+    from snds.se3 import evaluate_pose, tangent_demonstrations
+
+    policy, description, poses = _pose_model_and_data(args)
+    tangent = tangent_demonstrations(
+        poses,
+        position_scale=policy.config.position_scale,
+        rotation_scale=policy.config.rotation_scale,
+    )
+    split = _make_split(tangent, description.get("split", {}))
+    metrics = evaluate_pose(
+        policy, poses, split, seed=args.seed, rollouts=args.rollouts, samples=args.samples
+    )
+    metrics["train_seconds"] = description.get("train_result", {}).get("seconds")
+    write_json(args.model / "metrics.json", to_jsonable(metrics))
+    if not args.quiet:
+        _summarise_se3(args.model, metrics)
+    return 0
+
+
+def _plot_se3(args: argparse.Namespace) -> int:
+    from snds.se3 import plot_pose_policy
+
+    policy, _, poses = _pose_model_and_data(args)
+    loss_file = args.model / "loss.json"
+    history = json.loads(loss_file.read_text()).get("history") if loss_file.is_file() else None
+    paths = plot_pose_policy(policy, poses, args.out or args.model, history=history)
+    if not args.quiet:
+        for path in paths:
+            print(path)
+    return 0
+
+
+def _summarise_se3(out: Path, metrics: dict) -> None:
+    stability = metrics["stability"]
+    seconds = metrics.get("train_seconds")
+    timing = f"trained in {seconds:.1f} s, " if seconds is not None else ""
+    print(
+        f"{out}: {timing}position DTW {metrics['position_dtw_paper']:.4f} (paper scale), "
+        f"orientation error {metrics['orientation_error_along']:.4f} rad along the path, "
+        f"{metrics['final_orientation_error']:.4f} rad at the end; converged "
+        f"{stability['converged_fraction']:.3f} of {stability['rollouts']} random poses, "
+        f"{stability['decrease_violations']} decrease violations in "
+        f"{stability['samples_checked']} samples"
     )
 
 

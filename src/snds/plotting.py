@@ -350,7 +350,8 @@ def plot_all(
 
     Returns:
         The paths written: ``streamlines.png``, then ``lyapunov.png`` and
-        ``rollout_lyapunov.png`` for a stable policy, then ``loss.png``.
+        ``rollout_lyapunov.png`` for a stable policy, ``paths3d.png`` for a 3-D task, then
+        ``loss.png``.
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -381,9 +382,97 @@ def plot_all(
                 policy, rollouts, dt, out / "rollout_lyapunov.png", perturbed=perturbed
             )
         )
+    if demos.dim == 3:
+        paths.append(
+            plot_paths_3d(
+                [demo.positions for demo in demos],
+                list(rollouts),
+                demos.target,
+                out / "paths3d.png",
+                perturbed=list(perturbed),
+                title=_name(demos, policy),
+            )
+        )
     if history:
         paths.append(plot_loss(history, out / "loss.png"))
     return paths
+
+
+#: Colours of a frame's x, y and z axes (the usual red, green, blue).
+FRAME_COLORS = ("#e03131", "#2f9e44", "#1971c2")
+
+
+def plot_paths_3d(
+    demos: Sequence[np.ndarray],
+    rollouts: Sequence[np.ndarray],
+    target: np.ndarray,
+    path: str | Path,
+    *,
+    demo_orientations: Sequence[np.ndarray] | None = None,
+    rollout_orientations: Sequence[np.ndarray] | None = None,
+    perturbed: Sequence[np.ndarray] = (),
+    frames: int = 6,
+    title: str = "",
+) -> Path:
+    """Paths in 3-D: demonstrations (dark), rollouts (orange), rollouts from perturbed starts
+    (dashed), and for poses small orientation frames (x red, y green, z blue) along them.
+
+    Arguments:
+        demos: Demonstrated positions, each of shape (T, 3).
+        rollouts: Rollout positions, each of shape (T, 3).
+        target: The target position, shape (3,).
+        path: Where to write the PNG.
+        demo_orientations: Unit quaternions (x, y, z, w) of the demonstrations, (T, 4) each.
+        rollout_orientations: Those of the rollouts (not of the perturbed ones).
+        perturbed: Rollouts from perturbed or random starts, each (T, 3).
+        frames: Frames drawn along each path with orientations, evenly in time.
+        title: The plot's title.
+
+    Returns:
+        The path written.
+    """
+    from scipy.spatial.transform import Rotation
+
+    fig = Figure(figsize=(6.4, 5.6), dpi=DPI, layout="constrained")
+    ax = fig.add_subplot(projection="3d")
+    everything = np.concatenate([*demos, *rollouts, *perturbed, np.asarray(target)[None]])
+    low, high = everything.min(axis=0), everything.max(axis=0)
+    size = float((high - low).max()) or 1.0
+    groups = (
+        (demos, demo_orientations, DEMO_COLOR, "-", "demonstration"),
+        (rollouts, rollout_orientations, ROLLOUT_COLOR, "-", "rollout from demo start"),
+        (perturbed, None, PERTURBED_COLOR, "--", "rollout from random start"),
+    )
+    for paths, orientations, color, style, label in groups:
+        for i, points in enumerate(paths):
+            ax.plot(
+                *np.asarray(points).T,
+                style,
+                color=color,
+                linewidth=1.0,
+                alpha=0.85,
+                label=label if i == 0 else None,
+            )
+            if orientations is None or frames <= 0:
+                continue
+            # Frames sized to 6% of the view: visible, yet small against the motion.
+            index = np.linspace(0, len(points) - 1, frames).round().astype(int)
+            axes = Rotation.from_quat(np.asarray(orientations[i])[index]).as_matrix()
+            for k, base in zip(index, axes):
+                for column, frame_color in enumerate(FRAME_COLORS):
+                    tip = points[k] + 0.06 * size * base[:, column]
+                    ax.plot(*np.stack([points[k], tip]).T, color=frame_color, linewidth=1.2)
+    ax.scatter(*np.asarray(target)[:, None], marker="*", s=120, color="black", label="target")
+    middle = (low + high) / 2
+    for setter, centre in zip((ax.set_xlim, ax.set_ylim, ax.set_zlim), middle):
+        setter(centre - 0.55 * size, centre + 0.55 * size)
+    ax.set_box_aspect((1, 1, 1))
+    ax.set_xlabel("x")
+    ax.set_ylabel("y")
+    ax.set_zlabel("z")
+    ax.set_title(title, fontsize="medium")
+    ax.legend(frameon=False, loc="upper left", fontsize="small")
+    return _save(fig, path)
 
 
 # --- geometry --------------------------------------------------------------------------------

@@ -37,6 +37,7 @@ Quaternion algebra is roma's (XYZW, the order of SciPy and of the data files).
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -684,3 +685,66 @@ def check_pose_data(demos: PoseDemonstrations) -> None:
                 f"demonstration {i} turns to {angles.max():.4f} rad from the target "
                 "orientation, at the cut of the rotation-vector chart (pi)"
             )
+
+
+# --- plots -------------------------------------------------------------------------------------
+
+
+def plot_pose_policy(
+    policy: PosePolicy,
+    demos: PoseDemonstrations,
+    out_dir: str | Path,
+    *,
+    history: list[float] | None = None,
+    seed: int = 0,
+) -> list[Path]:
+    """Writes the plots of a pose policy into ``out_dir``.
+
+    ``paths3d.png``: demonstrations and rollouts from their start poses with orientation
+    frames along them, and rollouts from 4 random poses (positions in the demonstrations'
+    box enlarged 1.5 times, orientations uniform on SO(3)); ``rollout_lyapunov.png`` (a
+    stable policy): V along all these rollouts; ``loss.png`` when ``history`` is given.
+    Rollouts last 1.5 x the longest demonstration.
+
+    Returns:
+        The paths written.
+    """
+    from snds.plotting import plot_loss, plot_paths_3d, plot_rollout_lyapunov
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    policy64 = float64_copy(policy)
+    rng = np.random.default_rng(seed)
+    dt = demos.mean_dt()
+    steps = int(1.5 * demos.max_duration() / dt)
+    starts_p = np.stack([demo.positions[0] for demo in demos])
+    starts_q = np.stack([demo.orientations[0] for demo in demos])
+    positions = demos.positions()
+    centre = (positions.min(axis=0) + positions.max(axis=0)) / 2
+    half = 0.75 * float((positions.max(axis=0) - positions.min(axis=0)).max())
+    random_p, random_q = random_poses(centre, half, 4, rng)
+    p, q = rollout_poses_numpy(policy64, starts_p, starts_q, dt=dt, steps=steps)
+    rp, rq = rollout_poses_numpy(policy64, random_p, random_q, dt=dt, steps=steps)
+    kind = "stable pose policy" if policy.stable else "unconstrained pose policy"
+    paths = [
+        plot_paths_3d(
+            [demo.positions for demo in demos],
+            list(p),
+            demos.target_position,
+            out / "paths3d.png",
+            demo_orientations=[demo.orientations for demo in demos],
+            rollout_orientations=list(q),
+            perturbed=list(rp),
+            title=f"{demos.name} — {kind}" if demos.name else kind,
+        )
+    ]
+    if policy.stable:
+        with torch.no_grad():
+            y = policy64.tangent(torch.tensor(p), torch.tensor(q)).numpy()
+            y_random = policy64.tangent(torch.tensor(rp), torch.tensor(rq)).numpy()
+        paths.append(
+            plot_rollout_lyapunov(policy64, y, dt, out / "rollout_lyapunov.png", perturbed=y_random)
+        )
+    if history:
+        paths.append(plot_loss(history, out / "loss.png"))
+    return paths

@@ -11,7 +11,7 @@ from __future__ import annotations
 import contextlib
 import csv
 import itertools
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -28,7 +28,9 @@ CSV_HEADER = "demo,t,x1,...,xn[,v1,...,vn]"
 NPZ_KEYS = ("pos", "vel", "t", "dt")
 
 
-def load_demonstrations(path: str | Path, *, max_end_spread: float = 0.25) -> Demonstrations:
+def load_demonstrations(
+    path: str | Path, *, max_end_spread: float = 0.25, select: Sequence[int] | None = None
+) -> Demonstrations:
     """Loads a demonstrations file, choosing the reader by its extension (see :data:`LOADERS`).
 
     Arguments:
@@ -36,6 +38,9 @@ def load_demonstrations(path: str | Path, *, max_end_spread: float = 0.25) -> De
         max_end_spread: Largest accepted distance of a demonstration's end from the common
             target, as a fraction of the motion's extent (see
             :func:`~snds.data.targets.common_target`).
+        select: Keep only these demonstrations (0-based, in this order) before the target
+            is chosen: a subset that ends at one point can be used from a file whose
+            demonstrations end at several (3D-pick-box ends at two places 0.26 m apart).
 
     Raises:
         DataError: If the extension is not supported or the file cannot be used.
@@ -45,10 +50,12 @@ def load_demonstrations(path: str | Path, *, max_end_spread: float = 0.25) -> De
     if loader is None:
         supported = ", ".join(sorted(LOADERS))
         raise DataError(f"{path}: unsupported file type {path.suffix!r} (supported: {supported})")
-    return loader(path, max_end_spread=max_end_spread)
+    return loader(path, max_end_spread=max_end_spread, select=select)
 
 
-def load_mat(path: str | Path, *, max_end_spread: float = 0.25) -> Demonstrations:
+def load_mat(
+    path: str | Path, *, max_end_spread: float = 0.25, select: Sequence[int] | None = None
+) -> Demonstrations:
     """Loads demonstrations from a MATLAB file (v4 to v7.2) in one of the LPV-DS layouts.
 
     * ``Data``: a 2n x N matrix of concatenated demonstrations, rows = positions then
@@ -66,6 +73,7 @@ def load_mat(path: str | Path, *, max_end_spread: float = 0.25) -> Demonstration
     Arguments:
         path: The ``.mat`` file.
         max_end_spread: See :func:`load_demonstrations`.
+        select: See :func:`load_demonstrations`.
 
     Raises:
         DataError: If the file is missing, unreadable or truncated, lacks ``Data``/``data``, or
@@ -80,10 +88,12 @@ def load_mat(path: str | Path, *, max_end_spread: float = 0.25) -> Demonstration
         for i, block in enumerate(blocks):
             with _context(f"demonstration {i}"):
                 demos.append(_mat_demonstration(block, dt))
-        return _assemble(demos, path.stem, max_end_spread)
+        return _assemble(demos, path.stem, max_end_spread, select)
 
 
-def load_csv(path: str | Path, *, max_end_spread: float = 0.25) -> Demonstrations:
+def load_csv(
+    path: str | Path, *, max_end_spread: float = 0.25, select: Sequence[int] | None = None
+) -> Demonstrations:
     """Loads demonstrations from a CSV file with one row per sample.
 
     The header is ``demo,t,x1,...,xn`` optionally followed by ``v1,...,vn`` (case and spaces
@@ -99,6 +109,7 @@ def load_csv(path: str | Path, *, max_end_spread: float = 0.25) -> Demonstration
     Arguments:
         path: The ``.csv`` file (UTF-8, comma-separated).
         max_end_spread: See :func:`load_demonstrations`.
+        select: See :func:`load_demonstrations`.
 
     Raises:
         DataError: If the file is missing or empty, the header is misspelt (the message names
@@ -115,10 +126,12 @@ def load_csv(path: str | Path, *, max_end_spread: float = 0.25) -> Demonstration
             with _context(f"demo {label!r}"):
                 velocities = values[:, 1 + n :] if has_velocities else None
                 demos.append(_demonstration(values[:, 1 : 1 + n], velocities, values[:, 0]))
-        return _assemble(demos, path.stem, max_end_spread)
+        return _assemble(demos, path.stem, max_end_spread, select)
 
 
-def load_npz(path: str | Path, *, max_end_spread: float = 0.25) -> Demonstrations:
+def load_npz(
+    path: str | Path, *, max_end_spread: float = 0.25, select: Sequence[int] | None = None
+) -> Demonstrations:
     """Loads demonstrations from a NumPy ``.npz`` archive of equally long demonstrations.
 
     Keys:
@@ -136,6 +149,7 @@ def load_npz(path: str | Path, *, max_end_spread: float = 0.25) -> Demonstration
     Arguments:
         path: The ``.npz`` file. Object (pickled) arrays are refused.
         max_end_spread: See :func:`load_demonstrations`.
+        select: See :func:`load_demonstrations`.
 
     Raises:
         DataError: If the file is missing, not an ``.npz`` archive, has unknown or missing keys,
@@ -154,7 +168,7 @@ def load_npz(path: str | Path, *, max_end_spread: float = 0.25) -> Demonstration
             with _context(f"demonstration {i}"):
                 demo_velocities = None if velocities is None else velocities[i]
                 demos.append(_demonstration(positions[i], demo_velocities, times[i]))
-        return _assemble(demos, path.stem, max_end_spread)
+        return _assemble(demos, path.stem, max_end_spread, select)
 
 
 LOADERS: dict[str, Callable[..., Demonstrations]] = {
@@ -249,9 +263,19 @@ def _demonstration(
     return Demonstration(positions, velocities, times)
 
 
-def _assemble(demos: list[Demonstration], name: str, max_end_spread: float) -> Demonstrations:
+def _assemble(
+    demos: list[Demonstration],
+    name: str,
+    max_end_spread: float,
+    select: Sequence[int] | None = None,
+) -> Demonstrations:
     if not demos:
         raise DataError("no demonstrations in the file")
+    if select is not None:
+        for i in select:
+            if not 0 <= i < len(demos):
+                raise DataError(f"demonstration index {i} out of range 0..{len(demos) - 1}")
+        demos = [demos[i] for i in select]
     target, shifted = common_target(demos, max_end_spread=max_end_spread)
     return Demonstrations(shifted, target, name)
 
