@@ -29,7 +29,14 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from snds.data.demonstrations import Demonstration, Demonstrations
-from snds.data.files import DEFAULT_DT, _context, _existing_file, _numeric, _read_csv_rows
+from snds.data.files import (
+    DEFAULT_DT,
+    _context,
+    _existing_file,
+    _number,
+    _numeric,
+    _read_csv_rows,
+)
 from snds.data.targets import common_target
 from snds.errors import DataError
 
@@ -355,10 +362,7 @@ def _read_pose_csv(path: Path) -> list[PoseDemonstration]:
     for line, row in rows[1:]:
         if len(row) != len(POSE_CSV_HEADER):
             raise DataError(f"line {line} has {len(row)} fields, the header {len(POSE_CSV_HEADER)}")
-        try:
-            values = [float(field) for field in row[1:]]
-        except ValueError:
-            raise DataError(f"line {line}: a field is not a number") from None
+        values = [_number(field, line) for field in row[1:]]
         groups.setdefault(row[0].strip(), []).append(values)
     demos = []
     for label, values in groups.items():
