@@ -27,6 +27,13 @@ from snds.io import load_model, remove_temporaries, save_model, to_jsonable, wri
 from snds.policy import PolicyConfig, StablePolicy
 from snds.train import CHECKPOINT, TrainConfig, fit
 
+#: ``snds train --architecture`` choices: overrides of :class:`PolicyConfig`'s network sizes.
+#: "compact" is for controllers that evaluate large batches (measured in benchmarks/README.md).
+ARCHITECTURES: dict[str, dict[str, object]] = {
+    "default": {},
+    "compact": {"hidden": (64, 64), "fourier_features": 64},
+}
+
 
 def _index_list(text: str) -> list[int]:
     try:
@@ -120,6 +127,13 @@ def _build_parser() -> argparse.ArgumentParser:
         help="rho in a(x) = rho V(x); 0 is the paper's relaxed mode (dV/dt <= 0 only)",
     )
     train.add_argument("--unconstrained", action="store_true", help="behavioural cloning")
+    train.add_argument(
+        "--architecture",
+        choices=list(ARCHITECTURES),
+        default="default",
+        help="network sizes: default, or compact (hidden 64-64, 64 Fourier features: "
+        "faster batches; measured in benchmarks/README.md)",
+    )
     train.add_argument("--device", default="cpu", help="torch device (cpu, cuda, ...)")
     train.add_argument(
         "--resume",
@@ -289,7 +303,11 @@ def _train(args: argparse.Namespace) -> int:
         "test_demos": args.test_demos,
     }
     split = _make_split(demos, split_record)
-    policy_config = PolicyConfig(decay_rate=args.decay_rate, stable=not args.unconstrained)
+    policy_config = PolicyConfig(
+        **ARCHITECTURES[args.architecture],
+        decay_rate=args.decay_rate,
+        stable=not args.unconstrained,
+    )
     train_config = TrainConfig(
         steps=args.steps,
         window=args.window,
