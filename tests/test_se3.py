@@ -193,3 +193,33 @@ def test_save_load_round_trip(trained, tmp_path):
     q = random_quats(50, 7)
     assert torch.equal(loaded.twist(p, q), trained.twist(p, q))
     assert loaded.config == trained.config
+
+
+@pytest.mark.slow
+def test_cli_trains_evaluates_and_plots_a_pose_file(pose_demos, tmp_path):
+    import json
+
+    from snds.cli import main
+
+    # GIVEN a pose CSV file (auto-detected: no --se3 needed)
+    lines = ["demo,t,x,y,z,qx,qy,qz,qw"]
+    for d, demo in enumerate(pose_demos):
+        for t, p, q in zip(demo.times, demo.positions, demo.orientations):
+            lines.append(",".join(f"{v:.17g}" for v in [d, t, *p, *q]))
+    data = tmp_path / "poses.csv"
+    data.write_text("\n".join(lines) + "\n")
+    out = tmp_path / "model"
+    checks = ["--rollouts", "5", "--samples", "200"]
+    # WHEN it is trained, evaluated and plotted from the command line
+    assert (
+        main(["--quiet", "train", "--data", str(data), "--steps", "20", "--out", str(out), *checks])
+        == 0
+    )
+    assert main(["--quiet", "evaluate", str(out), *checks]) == 0
+    assert main(["--quiet", "plot", str(out)]) == 0
+    # THEN the model is a pose policy and every SE(3) metric and plot is there
+    assert json.loads((out / "model.json").read_text())["kind"] == "se3"
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert {"position_dtw", "orientation_error_along", "final_orientation_error"} <= set(metrics)
+    assert metrics["stability"]["rollouts"] == 5
+    assert (out / "paths3d.png").is_file() and (out / "rollout_lyapunov.png").is_file()
