@@ -156,7 +156,7 @@ def load_model(directory: Path) -> tuple[Policy, dict]:
     description = read_description(directory)
     # Files of format 1 written before baselines existed carry no kind: an SNDS/BC policy.
     kind = description.get("kind", "stable")
-    if kind not in POLICY_KINDS:
+    if not isinstance(kind, str) or kind not in POLICY_KINDS:
         raise ModelFileError(
             f"{directory / DESCRIPTION}: unknown policy kind {kind!r}; this snds reads "
             f"{', '.join(POLICY_KINDS)}"

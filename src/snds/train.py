@@ -205,11 +205,21 @@ def fit(
             save_checkpoint(Path(checkpoint), state, identity, policy, optimizer, generator)
         loss = _loss(policy, samples, config, generator)
         value = float(loss.detach())
-        if not math.isfinite(value) or value > 1e3 * max(state.best, 1e-8):
+        diverged = not math.isfinite(value) or value > 1e3 * max(state.best, 1e-8)
+        if not diverged:
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            norm = torch.nn.utils.clip_grad_norm_(policy.parameters(), config.grad_clip)
+            # A finite loss can still have a NaN gradient (a division that underflows in its
+            # backward pass); stepping on it would make every weight NaN, the saved good
+            # state included.
+            diverged = not bool(torch.isfinite(norm))
+        if diverged:
             result.restarts += 1
             if result.restarts > config.max_restarts:
                 raise TrainingError(
-                    f"loss diverged {result.restarts} times (last {value:.3g}); try a lower lr"
+                    f"loss or its gradient diverged {result.restarts} times (last loss "
+                    f"{value:.3g}); try a lower lr"
                 )
             policy.load_state_dict(state.good)
             optimizer = torch.optim.Adam(policy.parameters(), lr=config.lr)
@@ -217,9 +227,6 @@ def fit(
             continue
         for group in optimizer.param_groups:
             group["lr"] = state.lr_scale * _learning_rate(step, config)
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(policy.parameters(), config.grad_clip)
         optimizer.step()
         result.history.append(value)
         state.smoothed = (
