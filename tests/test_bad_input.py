@@ -233,6 +233,11 @@ CASES: dict[str, Case] = {
         "decay_rate and decay_far must be >= 0",
     ),
     "no cuda device": Case(no_cuda, ConfigError, "no CUDA device is available"),
+    "npz with a pickled payload": Case(
+        data_file("evil.npz", lambda path: np.savez(path, pos=np.array([Exploit()], dtype=object))),
+        DataError,
+        "evil.npz: not a readable .npz archive",
+    ),
     "model dir without model.json": Case(
         model_dir(lambda d: (d / "model.json").unlink()), ModelFileError, "model.json: missing"
     ),
