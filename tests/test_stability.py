@@ -56,7 +56,12 @@ def test_largest_safe_step_is_exact_for_a_quadratic():
     from snds.stability import largest_safe_step
 
     config = PolicyConfig(
-        hidden=(4,), fourier_features=0, lyapunov_hidden=(4,), decay_rate=1.0, decay_far=0.0
+        hidden=(4,),
+        fourier_features=0,
+        lyapunov_hidden=(4,),
+        decay_rate=1.0,
+        decay_far=0.0,
+        decay_near=0.0,
     )
     norm = Normalization(center=np.zeros(2), length=1.0, time=1.0)
     policy = StablePolicy(dim=2, normalization=norm, config=config).double()

@@ -124,7 +124,14 @@ def _build_parser() -> argparse.ArgumentParser:
         "--decay-rate",
         type=float,
         default=PolicyConfig.decay_rate,
-        help="rho in a(x) = rho V(x); 0 is the paper's relaxed mode (dV/dt <= 0 only)",
+        help="rho in a(x) = rho V(x); 0 (with --decay-near 0) is the paper's relaxed mode "
+        "(dV/dt <= 0 only)",
+    )
+    train.add_argument(
+        "--decay-near",
+        type=float,
+        default=PolicyConfig.decay_near,
+        help="extra decay rate at the target, fading out at 0.2 of the extent (0: off)",
     )
     train.add_argument("--unconstrained", action="store_true", help="behavioural cloning")
     train.add_argument(
@@ -306,6 +313,7 @@ def _train(args: argparse.Namespace) -> int:
     policy_config = PolicyConfig(
         **ARCHITECTURES[args.architecture],
         decay_rate=args.decay_rate,
+        decay_near=args.decay_near,
         stable=not args.unconstrained,
     )
     train_config = TrainConfig(
@@ -594,7 +602,9 @@ def _train_se3(args: argparse.Namespace) -> int:
     out = args.out or Path("runs") / f"{poses.name or Path(str(args.data)).stem}-se3"
     if out.exists() and not out.is_dir():
         raise ConfigError(f"--out {out}: is a file, not a directory")
-    config = PolicyConfig(decay_rate=args.decay_rate, stable=not args.unconstrained)
+    config = PolicyConfig(
+        decay_rate=args.decay_rate, decay_near=args.decay_near, stable=not args.unconstrained
+    )
     policy, demos = make_pose_policy(poses, config=config, seed=args.seed)
     split_record = {
         "test_fraction": args.test_fraction,
