@@ -301,6 +301,9 @@ def _check_sizes(args: argparse.Namespace) -> None:
 def _train(args: argparse.Namespace) -> int:
     _check_sizes(args)
     if args.se3 or (args.data is not None and _is_pose_file(args.data)):
+        if args.resume:
+            # Refused rather than ignored: a user must not believe a pose run resumed.
+            raise ConfigError("--resume is not available for SE(3) training yet")
         return _train_se3(args)
     demos = _load_data(args.motion, args.data, args.demos)
     out = args.out or Path("runs") / (demos.name or Path(str(args.data)).stem)
