@@ -139,9 +139,11 @@ def largest_safe_step(
     def safe(h: float) -> bool:
         step = h / policy.time
         # At tiny steps V's change falls below the rounding error of V itself (a Bregman
-        # difference of larger terms), which may show as a rise of a few ulps; an
-        # overshooting step raises V by far more than this allowance.
-        allowance = 1e-9 * value + 1e-13
+        # difference of terms of the size of g, which may be 1e3 and more), which may show as
+        # a rise: seen at 5.5e-8 V near the target of a trained model. An overshooting step
+        # raises V by a fraction of V itself, far more than this allowance, and the relative
+        # part moves the bisection's answer by about 1e-7 of it.
+        allowance = 1e-7 * value + 1e-12
         return bool((policy.lyapunov(xm + step * velocity) <= value + allowance).all())
 
     if safe(upper):
