@@ -49,28 +49,12 @@ def test_a_field_that_stops_short_is_reported_as_not_converged():
 
 
 def test_largest_safe_step_is_exact_for_a_quadratic():
-    # V = d |x|^2 + (a linear ICNN part cancels in the Bregman form) and pi = -k x: a step h
-    # decreases V iff |1 - k h| < 1, i.e. h < 2 / k. Build that with a zero nominal field.
-    from snds.data import Normalization
-    from snds.policy import PolicyConfig, StablePolicy
+    # V = d |x|^2 and pi = -k x: a step h decreases V iff |1 - k h| < 1, i.e. h < 2 / k.
     from snds.stability import largest_safe_step
 
-    config = PolicyConfig(
-        hidden=(4,),
-        fourier_features=0,
-        lyapunov_hidden=(4,),
-        decay_rate=1.0,
-        decay_far=0.0,
-        decay_near=0.0,
-    )
-    norm = Normalization(center=np.zeros(2), length=1.0, time=1.0)
-    policy = StablePolicy(dim=2, normalization=norm, config=config).double()
-    with torch.no_grad():
-        for p in policy.nominal_net.parameters():
-            p.zero_()
-        for skip in policy.lyapunov.icnn.skips:
-            skip.weight.zero_()  # g constant: V = d |x|^2 exactly
-    # pi = -grad V * a / |grad V|^2 = -(2 d x) d |x|^2 / (4 d^2 |x|^2) = -x / 2: k = 1/2
+    from conftest import linear_policy
+
+    policy = linear_policy(0.5)
     x = torch.randn(1000, 2, dtype=torch.float64)
     torch.testing.assert_close(policy(x), -0.5 * x)
     h = largest_safe_step(policy, x, upper=100.0)
