@@ -128,7 +128,10 @@ def test_stored_dt_is_used_and_the_estimate_recovers_it(name, tmp_path):
     contents = scipy.io.loadmat(path)
     dt = contents["dt"].item()
     for demo in load_mat(path, max_end_spread=0.5):
-        np.testing.assert_allclose(demo.times, dt * np.arange(len(demo.times)), rtol=1e-15)
+        # Every step is the stored one but where samples are missing (see retime_gaps).
+        steps = np.diff(demo.times)
+        stored = np.isclose(steps, dt, rtol=1e-9)
+        assert np.all(stored | (steps > dt)) and stored.mean() > 0.99
     # GIVEN the same demonstrations without their dt
     stripped = tmp_path / name
     scipy.io.savemat(stripped, {"data": contents["data"]})

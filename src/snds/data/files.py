@@ -350,7 +350,42 @@ def _mat_demonstration(block: np.ndarray, dt: float | None) -> Demonstration:
     # Validates shapes and finiteness before estimating the time step from them.
     Demonstration(positions, velocities, np.arange(len(positions), dtype=np.float64))
     step = estimate_time_step(positions, velocities) if dt is None else dt
-    return Demonstration(positions, velocities, step * np.arange(len(positions)))
+    return Demonstration(positions, velocities, retime_gaps(positions, velocities, step))
+
+
+def retime_gaps(positions: np.ndarray, velocities: np.ndarray, dt: float) -> np.ndarray:
+    r"""Sample times at a fixed step, with a longer step wherever samples are missing.
+
+    A recording that drops samples shows a position jump that its velocities cannot explain:
+    every demonstration of the 3-D LPV-DS files has one such gap, 1-17 cm in one step early in
+    the motion, after which the motion goes on from the new position (a step, not a spike).
+    At a fixed step the rollout from the recorded start can never make that jump, so it lags
+    the demonstration by the gap for the rest of the motion. A step whose increment is more
+    than 5 times what the trapezoidal rule :math:`\Delta t (v_k + v_{k+1}) / 2` explains (and
+    more than 1e-3 of the motion's extent) gets the time that the velocities need to cover
+    it, :math:`\Delta t_k = \Delta x \cdot ar v / \|ar v\|^2` (least squares), if that is
+    longer than ``dt``.
+
+    Arguments:
+        positions: Positions, shape (T, n).
+        velocities: Recorded velocities, shape (T, n).
+        dt: The nominal time step.
+
+    Returns:
+        Strictly increasing times starting at 0, shape (T,).
+    """
+    steps = np.full(len(positions) - 1, dt)
+    increments = np.diff(positions, axis=0)
+    mean_velocities = (velocities[1:] + velocities[:-1]) / 2
+    extent = float(np.linalg.norm(positions - positions[-1], axis=1).max())
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        explained = dt * np.linalg.norm(mean_velocities, axis=1)
+        gaps = np.linalg.norm(increments, axis=1) > 5 * explained + 1e-3 * extent
+        speed2 = np.sum(mean_velocities**2, axis=1)
+        needed = np.sum(increments * mean_velocities, axis=1) / speed2
+    gaps &= np.isfinite(needed) & (needed > dt)
+    steps[gaps] = needed[gaps]
+    return np.concatenate([[0.0], np.cumsum(steps)])
 
 
 # CSV.
