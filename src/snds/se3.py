@@ -492,8 +492,11 @@ class PoseStabilityReport:
             target's.
         median_time_to_converge: Median time (s) to enter both tolerances for good, over the
             converged rollouts (NaN if none converged).
-        v_rises: Steps of the SO(3) rollouts at which V rose (0 for a policy without V):
-            the discrete check of the decrease along the robot's real motion.
+        v_rises: Steps of the SO(3) rollouts at which V rose even after ``max_halvings``
+            halvings (0 for a policy without V): the discrete decrease along the robot's
+            real motion.
+        shortened_fraction: Fraction of rollouts in which the guard shortened a step.
+        integrator: "guarded euler on SO(3)" (with V) or "euler on SO(3)".
         samples_checked: Random poses at which the decrease condition was checked.
         decrease_violations: Poses where grad V . y_dot > -a(y) beyond rounding.
         largest_safe_dt: Largest Euler step (s) in the chart decreasing V at every sample.
@@ -510,6 +513,8 @@ class PoseStabilityReport:
     max_final_angle: float
     median_time_to_converge: float
     v_rises: int
+    shortened_fraction: float
+    integrator: str
     samples_checked: int
     decrease_violations: int
     largest_safe_dt: float
@@ -547,13 +552,15 @@ def check_pose_stability(
     sample_box_factor: float = 10.0,
     seed: int = 0,
     chunk: int = 20_000,
+    max_halvings: int = 30,
 ) -> PoseStabilityReport:
     """Rolls out on SE(3) from random poses and checks the decrease condition on random poses.
 
     Start positions are uniform in a box of half-width ``box_factor`` x the position extent
     around the target; start orientations are uniform over all of SO(3) (angles up to pi from
     the target). Rollouts (:func:`rollout_poses`, float64) run ``horizon_factor`` x the longest
-    demonstration's duration at the demonstrations' mean step and have converged if they end
+    demonstration's duration at the demonstrations' mean step (for a policy with V, each step
+    halved until V drops, as in every policy's check) and have converged if they end
     within ``tolerance_factor`` x the position extent and ``tolerance_factor`` x pi radians
     of the target pose. The decrease condition is checked, as for every policy, by
     :func:`snds.stability.decrease_violations` at random poses (positions in a box of
@@ -570,6 +577,7 @@ def check_pose_stability(
         sample_box_factor: Half-width of their positions' box, in extents.
         seed: Seed of the random poses.
         chunk: Poses per batch of the decrease check.
+        max_halvings: Halvings of a step that does not decrease V before it is taken anyway.
     """
     policy = float64_copy(policy)
     rng = np.random.default_rng(seed)
@@ -599,22 +607,39 @@ def check_pose_stability(
         to_model = policy.scales.numpy() * policy.normalization.length
         radius = 0.5 * min(position_tolerance / to_model[0], angle_tolerance / to_model[3])
         level = policy.lyapunov.quadratic * radius**2
+    shortened = torch.zeros(rollouts, dtype=torch.bool)
+
+    def step_pose(pa: Tensor, qa: Tensor, twist: Tensor, h: Tensor) -> tuple[Tensor, Tensor]:
+        h = h[:, None]
+        return pa + h * twist[..., :3], roma.quat_normalize(rotate(h * twist[..., 3:], qa))
+
     for step in range(1, steps + 1):
         pa, qa = p[active], q[active]
         twist = policy.twist(pa, qa)
-        pa = pa + dt * twist[..., :3]
-        qa = roma.quat_normalize(rotate(dt * twist[..., 3:], qa))
-        p[active], q[active] = pa, qa
-        distance, angle = errors(pa, qa)
+        h = torch.full((len(active),), dt, dtype=p.dtype)
+        new_p, new_q = step_pose(pa, qa, twist, h)
+        if value is not None:
+            # Guarded step, as for every policy's check (snds.rollout.guarded_rollout): a
+            # continuous decrease does not make every Euler step decrease V, so a step is
+            # halved, per rollout, until V drops (V below 1e-12 is the target up to rounding).
+            now = value[active]
+            new = policy.lyapunov(policy.to_model(policy.tangent(new_p, new_q)))
+            for _ in range(max_halvings):
+                bad = (new >= now) & (now > 1e-12)
+                if not bool(bad.any()):
+                    break
+                h = torch.where(bad, 0.5 * h, h)
+                shortened[active[bad]] = True
+                new_p, new_q = step_pose(pa, qa, twist, h)
+                new = policy.lyapunov(policy.to_model(policy.tangent(new_p, new_q)))
+            rises += int(((new > now * (1 + 1e-9)) & (now > 1e-12)).sum())
+            value[active] = new
+        p[active], q[active] = new_p, new_q
+        distance, angle = errors(new_p, new_q)
         outside = (distance > position_tolerance) | (angle > angle_tolerance)
         last_outside[active[outside]] = step
-        if value is not None:
-            new = policy.lyapunov(policy.to_model(policy.tangent(pa, qa)))
-            # Below 1e-12 (model units) V is at the target up to rounding.
-            rises += int(((new > value[active] * (1 + 1e-9)) & (value[active] > 1e-12)).sum())
-            value[active] = new
-            if step % 10 == 0:
-                active = active[new >= level]
+        if value is not None and step % 10 == 0:
+            active = active[value[active] >= level]
         if len(active) == 0:
             break
     distance, angle = errors(p, q)
@@ -644,6 +669,8 @@ def check_pose_stability(
         max_final_angle=largest(angle),
         median_time_to_converge=float(times.median()) if len(times) else float("nan"),
         v_rises=rises,
+        shortened_fraction=float(shortened.double().mean()) if rollouts else float("nan"),
+        integrator="guarded euler on SO(3)" if policy.stable else "euler on SO(3)",
         samples_checked=checked,
         decrease_violations=violations,
         largest_safe_dt=safe_dt,
