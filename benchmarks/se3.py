@@ -59,13 +59,14 @@ def machine() -> str:
     return f"{platform.machine()} {platform.processor() or ''} {os.cpu_count()} cores".strip()
 
 
-def _write(part: str, row: dict, header: str, columns: list[tuple[str, str]]) -> None:
-    """Saves one run's row and rebuilds the part's JSON, CSV and README table from every
-    row saved so far (runs of one part may go in parallel processes, one task each)."""
+def _write(part: str, row: dict | None, header: str, columns: list[tuple[str, str]]) -> None:
+    """Saves one run's row (if given) and rebuilds the part's JSON, CSV and README table from
+    every row saved so far (runs of one part may go in parallel processes, one task each)."""
     folder = HERE / "results" / part
     folder.mkdir(parents=True, exist_ok=True)
-    key = "-".join(str(row[k]) for k in ("task", "method", "fourier_scale") if k in row)
-    (folder / f"{key.replace(' ', '_')}.json").write_text(json.dumps(row, indent=2) + "\n")
+    if row is not None:
+        key = "-".join(str(row[k]) for k in ("task", "method", "fourier_scale") if k in row)
+        (folder / f"{key.replace(' ', '_')}.json").write_text(json.dumps(row, indent=2) + "\n")
     rows = [json.loads(path.read_text()) for path in folder.glob("*.json")]
     rows.sort(key=lambda r: (r["order"], -r.get("fourier_scale", 0), r.get("method") == "bc"))
     out = HERE / "results"
@@ -114,27 +115,34 @@ def arm3d(args: argparse.Namespace) -> None:
                 "stability": stability,
             }
             print(json.dumps(row), flush=True)
-            _write(
-                "arm3d",
-                row,
-                f"Real 3-D arm demonstrations (`python benchmarks/se3.py --part arm3d`, "
-                f"{datetime.date.today()}, {machine()}, shared with other jobs; seed "
-                f"{args.seed}, {args.steps} steps, {args.rollouts} random starts in a box 3x "
-                f"the extent, {args.samples} decrease checks). DTW (paper eq. 7, q = 2) and "
-                "final distance in metres; velocity MSE in (m/s)^2 on the test samples.",
-                [
-                    ("task", "{task}"),
-                    ("demos", "{demos}"),
-                    ("Fourier scale", "{fourier_scale:g}"),
-                    ("extent [m]", "{extent_m:.3f}"),
-                    ("DTW [m]", "{dtw:.3f}"),
-                    ("final error [m]", "{final_distance:.4f}"),
-                    ("velocity MSE", "{velocity_mse:.2e}"),
-                    ("converged", "{converged_fraction:.3f}"),
-                    ("violations", "{decrease_violations}"),
-                    ("train [s] wall / CPU", "{train_seconds:.0f} / {train_cpu_seconds:.0f}"),
-                ],
-            )
+            _write("arm3d", row, *_arm_table(args))
+
+
+def _arm_table(args: argparse.Namespace) -> tuple[str, list[tuple[str, str]]]:
+    header = (
+        f"Real 3-D arm demonstrations (`python benchmarks/se3.py --part arm3d`, "
+        f"{datetime.date.today()}, {machine()}, shared with other jobs, so CPU seconds are the "
+        f"steadier figure; seed {args.seed}, {args.steps} steps, {args.rollouts} random starts "
+        f"in a box 3x the extent, {args.samples} decrease checks). Rollouts from the "
+        "demonstrations' starts (the whole set under the sample split): DTW (paper eq. 7, "
+        "q = 2: the root of a sum of squares over about 500 pairs), discrete Frechet distance "
+        "and final distance to the target after the demonstration's duration, in metres; "
+        "velocity MSE in (m/s)^2 on the test samples."
+    )
+    columns = [
+        ("task", "{task}"),
+        ("demos", "{demos}"),
+        ("Fourier scale", "{fourier_scale:g}"),
+        ("extent [m]", "{extent_m:.3f}"),
+        ("DTW [m]", "{dtw:.3f}"),
+        ("Frechet [m]", "{frechet:.3f}"),
+        ("final error [m]", "{final_distance:.4f}"),
+        ("velocity MSE", "{velocity_mse:.2e}"),
+        ("converged", "{converged_fraction:.3f}"),
+        ("violations", "{decrease_violations}"),
+        ("train [s] wall / CPU", "{train_seconds:.0f} / {train_cpu_seconds:.0f}"),
+    ]
+    return header, columns
 
 
 def se3_demos(task: str, seed: int):
@@ -181,31 +189,34 @@ def se3(args: argparse.Namespace) -> None:
                 "stability": stability,
             }
             print(json.dumps(row), flush=True)
-            _write(
-                "se3",
-                row,
-                f"SE(3) pose policies (`python benchmarks/se3.py --part se3`, "
-                f"{datetime.date.today()}, {machine()}, shared with other jobs; seed "
-                f"{args.seed}, {args.steps} steps). Synthetic orientations: a slerp from about "
-                "89 degrees (plus 0.1 rad of variation per demonstration) to the target along "
-                "the path. Position DTW and final error in the data's units (Messy Snake: m, "
-                "LASA: mm); orientation errors in radians; converged: of "
-                f"{args.rollouts} random poses (positions in a box 3x the extent, orientations "
-                "uniform on SO(3)); violations of the decrease condition at "
-                f"{args.samples} random poses (BC has no V to check).",
-                [
-                    ("task", "{task}"),
-                    ("method", "{method}"),
-                    ("position DTW", "{position_dtw:.3g}"),
-                    ("DTW (paper scale)", "{position_dtw_paper:.3f}"),
-                    ("final position error", "{final_position_error:.3g}"),
-                    ("orientation error along [rad]", "{orientation_error_along:.4f}"),
-                    ("final orientation error [rad]", "{final_orientation_error:.4f}"),
-                    ("converged", "{converged_fraction:.3f}"),
-                    ("violations", "{decrease_violations} of {samples_checked}"),
-                    ("train [s] wall / CPU", "{train_seconds:.0f} / {train_cpu_seconds:.0f}"),
-                ],
-            )
+            _write("se3", row, *_se3_table(args))
+
+
+def _se3_table(args: argparse.Namespace) -> tuple[str, list[tuple[str, str]]]:
+    header = (
+        f"SE(3) pose policies (`python benchmarks/se3.py --part se3`, "
+        f"{datetime.date.today()}, {machine()}, shared with other jobs, so CPU seconds are the "
+        f"steadier figure; seed {args.seed}, {args.steps} steps). Synthetic orientations: a "
+        "slerp from about 89 degrees (plus 0.1 rad of variation per demonstration) to the "
+        "target along the path. Position DTW and final error (after the demonstration's "
+        "duration) in the data's units (Messy Snake: m, LASA: mm); orientation errors in "
+        f"radians; converged: of {args.rollouts} random poses (positions in a box 3x the "
+        "extent, orientations uniform on SO(3)), SNDS with the guarded step; violations of the "
+        f"decrease condition at {args.samples} random poses (BC has no V to check)."
+    )
+    columns = [
+        ("task", "{task}"),
+        ("method", "{method}"),
+        ("position DTW", "{position_dtw:.3g}"),
+        ("DTW (paper scale)", "{position_dtw_paper:.3f}"),
+        ("final position error", "{final_position_error:.3g}"),
+        ("orientation error along [rad]", "{orientation_error_along:.4f}"),
+        ("final orientation error [rad]", "{final_orientation_error:.4f}"),
+        ("converged", "{converged_fraction:.3f}"),
+        ("violations", "{decrease_violations} of {samples_checked}"),
+        ("train [s] wall / CPU", "{train_seconds:.0f} / {train_cpu_seconds:.0f}"),
+    ]
+    return header, columns
 
 
 def main() -> None:
@@ -222,8 +233,14 @@ def main() -> None:
         "--methods", nargs="+", default=["snds", "bc"], help="se3 part: snds and/or bc"
     )
     parser.add_argument("--fourier-scales", type=float, nargs="+", default=[5.0, 2.0])
+    parser.add_argument(
+        "--collect", action="store_true", help="only rebuild the tables from saved runs"
+    )
     args = parser.parse_args()
     torch.set_num_threads(1)
+    if args.collect:
+        _write(args.part, None, *{"arm3d": _arm_table, "se3": _se3_table}[args.part](args))
+        return
     {"arm3d": arm3d, "se3": se3}[args.part](args)
 
 
