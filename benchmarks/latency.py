@@ -38,16 +38,22 @@ HERE = Path(__file__).resolve().parent
 BATCH = 10_000
 
 
-def _time(call: Callable[[], object], *, calls: int, warmup: int) -> np.ndarray:
-    """Seconds of each of ``calls`` timed calls, after ``warmup`` untimed ones."""
+def _time(call: Callable[[], object], *, calls: int, warmup: int) -> tuple[np.ndarray, np.ndarray]:
+    """Wall and CPU seconds of each of ``calls`` timed calls, after ``warmup`` untimed ones.
+
+    CPU time is the process's (``process_time_ns``): on a shared machine a one-thread call's
+    CPU time is what it would take on a free core, while its wall time includes the time the
+    scheduler gave to other work. With more threads it also counts their spinning.
+    """
     for _ in range(warmup):
         call()
-    seconds = np.empty(calls)
+    seconds, cpu = np.empty(calls), np.empty(calls)
     for i in range(calls):
-        begin = time.perf_counter_ns()
+        begin, begin_cpu = time.perf_counter_ns(), time.process_time_ns()
         call()
+        cpu[i] = (time.process_time_ns() - begin_cpu) * 1e-9
         seconds[i] = (time.perf_counter_ns() - begin) * 1e-9
-    return seconds
+    return seconds, cpu
 
 
 def _backends(policy, files: dict[str, Path], threads: int) -> dict[str, Callable]:
@@ -95,7 +101,13 @@ def _input(name: str, x: np.ndarray):
 
 
 def measure(
-    policy, files: dict[str, Path], *, calls: int, seed: int, rounds: int = 3
+    policy,
+    files: dict[str, Path],
+    *,
+    calls: int,
+    seed: int,
+    rounds: int = 3,
+    batch_calls: int = 50,
 ) -> list[dict]:
     """All rows: each backend, one state (1 thread) and a batch (1 thread, all cores).
 
@@ -108,18 +120,23 @@ def measure(
     single = (policy.normalization.center + 0.5 * policy.normalization.length)[None]
     cores = os.cpu_count() or 1
     rows = []
-    plan = [("single", single, 1, calls), ("batch", states, 1, 50)]
+    plan = [("single", single, 1, calls), ("batch", states, 1, batch_calls)]
     if cores > 1:
-        plan.append(("batch", states, cores, 50))
+        plan.append(("batch", states, cores, batch_calls))
     for case, x, threads, count in plan:
         backends = _backends(policy, files, threads)
         best: dict[str, np.ndarray] = {}
+        best_cpu: dict[str, np.ndarray] = {}
         for _ in range(rounds):
             for name, run in backends.items():
                 prepared = _input(name, x)
-                seconds = _time(lambda run=run, p=prepared: run(p), calls=count, warmup=count // 10)
+                seconds, cpu = _time(
+                    lambda run=run, p=prepared: run(p), calls=count, warmup=max(count // 10, 2)
+                )
                 if name not in best or np.median(seconds) < np.median(best[name]):
                     best[name] = seconds
+                if name not in best_cpu or np.median(cpu) < np.median(best_cpu[name]):
+                    best_cpu[name] = cpu
         for name, seconds in best.items():
             rows.append(
                 {
@@ -131,6 +148,7 @@ def measure(
                     "rounds": rounds,
                     "median_us": round(float(np.median(seconds)) * 1e6, 2),
                     "p99_us": round(float(np.percentile(seconds, 99)) * 1e6, 2),
+                    "cpu_median_us": round(float(np.median(best_cpu[name])) * 1e6, 2),
                 }
             )
             print(json.dumps(rows[-1]), flush=True)
@@ -143,8 +161,9 @@ def table(rows: list[dict], checks: dict[str, dict]) -> str:
     multi = sorted({r["threads"] for r in rows if r["case"] == "batch" and r["threads"] > 1})
     header = "| backend | 1 state: median / p99 (us) | 10,000 states, 1 thread: median / p99 (ms)"
     header += "".join(f" | 10,000 states, {t} threads: median / p99 (ms)" for t in multi)
-    header += " | largest difference from the library |"
-    lines = [header, "|---" * (4 + len(multi)) + "|"]
+    header += " | 10,000 states, 1 thread: CPU time (ms)"
+    header += " | difference from the library: same precision / float64 |"
+    lines = [header, "|---" * (5 + len(multi)) + "|"]
     for name in names:
         mine = {(r["case"], r["threads"]): r for r in rows if r["backend"] == name}
         one = mine[("single", 1)]
@@ -152,13 +171,20 @@ def table(rows: list[dict], checks: dict[str, dict]) -> str:
         for threads in [1, *multi]:
             batch = mine[("batch", threads)]
             cells.append(f"{batch['median_us'] / 1e3:.2f} / {batch['p99_us'] / 1e3:.2f}")
+        cells.append(f"{mine[('batch', 1)]['cpu_median_us'] / 1e3:.2f}")
         check = checks.get(name)
-        cells.append("(reference)" if check is None else f"{check['max_error']:.1e}")
+        cells.append(
+            "(reference)"
+            if check is None
+            else f"{check['max_error']:.1e} / {check['max_error_float64']:.1e}"
+        )
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
-def _run(policy, folder: Path, *, calls: int, seed: int, rounds: int) -> tuple[list[dict], dict]:
+def _run(
+    policy, folder: Path, *, calls: int, seed: int, rounds: int, batch_calls: int
+) -> tuple[list[dict], dict]:
     files = {
         "onnx32": export.export_onnx(policy, folder / "policy-float32.onnx"),
         "onnx64": export.export_onnx(policy, folder / "policy-float64.onnx", dtype=torch.float64),
@@ -169,7 +195,8 @@ def _run(policy, folder: Path, *, calls: int, seed: int, rounds: int) -> tuple[l
         "ONNX Runtime float64": export.verify(files["onnx64"], policy).to_dict(),
         "torch.export float32": export.verify(files["pt2"], policy).to_dict(),
     }
-    return measure(policy, files, calls=calls, seed=seed, rounds=rounds), checks
+    rows = measure(policy, files, calls=calls, seed=seed, rounds=rounds, batch_calls=batch_calls)
+    return rows, checks
 
 
 def main() -> None:
@@ -177,7 +204,11 @@ def main() -> None:
     parser.add_argument("--model", type=Path, default=Path("runs/Sine"), help="model directory")
     parser.add_argument("--calls", type=int, default=10_000, help="timed single-state calls")
     parser.add_argument("--rounds", type=int, default=3, help="rounds; the best one is kept")
+    parser.add_argument("--batch-calls", type=int, default=50, help="timed batch calls")
     parser.add_argument("--seed", type=int, default=0, help="seed of the batch states")
+    parser.add_argument(
+        "--tag", default="", help="suffix of the result files and of the README block"
+    )
     parser.add_argument("--no-readme", action="store_true")
     args = parser.parse_args()
     if not (args.model / "model.json").is_file():
@@ -188,7 +219,12 @@ def main() -> None:
     out = HERE / "results"
     with tempfile.TemporaryDirectory(prefix="snds-latency-") as folder:
         rows, checks = _run(
-            policy, Path(folder), calls=args.calls, seed=args.seed, rounds=args.rounds
+            policy,
+            Path(folder),
+            calls=args.calls,
+            seed=args.seed,
+            rounds=args.rounds,
+            batch_calls=args.batch_calls,
         )
     meta = {
         "date": datetime.date.today().isoformat(),
@@ -201,24 +237,28 @@ def main() -> None:
         "architecture": description.get("policy"),
         "checks": checks,
     }
-    (out / "latency.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=2) + "\n")
-    with open(out / "latency.csv", "w", newline="") as handle:
+    name = "latency" + (f"-{args.tag}" if args.tag else "")
+    (out / f"{name}.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=2) + "\n")
+    with open(out / f"{name}.csv", "w", newline="") as handle:
         writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
         writer.writeheader()
         writer.writerows(rows)
     body = table(rows, checks)
     print(body)
     if not args.no_readme:
+        sizes = meta["architecture"] or {}
         header = (
             f"Measured {meta['date']} on {meta['machine']} ({meta['processor']}), shared "
-            f"with other work: best of {args.rounds} rounds per row; "
+            f"with other work (wall times are inflated by it; the CPU time of a one-thread "
+            f"call is what it takes on a free core): best of {args.rounds} rounds per row; "
             f"torch {meta['torch']}, onnxruntime {meta['onnxruntime']}; model `{args.model}` "
-            f"({meta['motion'] or 'custom data'}, default architecture). The difference is "
-            "the largest over 10,000 random states (up to 1000x the extent) of "
-            "|exported - library| / max(|library|, top speed), the library in the same "
-            "precision."
+            f"({meta['motion'] or 'custom data'}; hidden {sizes.get('hidden')}, "
+            f"{sizes.get('fourier_features')} Fourier features). The differences are the "
+            "largest over 10,000 random states (up to 1000x the extent) of "
+            "|exported - library| / max(|library|, top speed), the library in the export's "
+            "precision and in float64."
         )
-        write_readme_section("latency", header + "\n\n" + body)
+        write_readme_section(name, header + "\n\n" + body)
 
 
 def _cpu_name() -> str:

@@ -114,6 +114,37 @@ def test_float32_onnx_agrees_to_float32_rounding(policy, tmp_path: Path) -> None
     assert check.max_error <= export.TOLERANCE[torch.float32]
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_onnx_equals_the_library_in_its_own_precision(tmp_path: Path, dtype) -> None:
+    # GIVEN the compact architecture (what a batch controller exports), exported in a dtype
+    from snds.cli import ARCHITECTURES
+
+    config = PolicyConfig(**{**SMALL.to_dict(), **ARCHITECTURES["compact"]})
+    policy = make_policy(shifted_spiral(), config=config, seed=5, dtype=torch.float32).eval()
+    path = export.export_onnx(policy, tmp_path / "policy.onnx", dtype=dtype)
+    # WHEN it is checked on 10,000 states against the library in float64 and in its dtype
+    check = export.verify(path, policy, samples=10_000, seed=7)
+    # THEN it agrees with the library in its own precision within the tolerance, and is no
+    # further from the exact (float64) policy than that plus the library's own rounding
+    assert check.passed and check.max_error <= export.TOLERANCE[dtype]
+    assert check.max_error_float64 <= check.max_error + check.library_error + 1e-12
+    if dtype == torch.float64:
+        assert check.max_error <= 1e-9 and check.library_error == 0.0
+    else:
+        assert 0.0 < check.library_error < 1e-3
+
+
+def test_onnx_graph_has_no_product_with_a_vector(policy, onnx64) -> None:
+    # onnxruntime's MatMul with a 1-D operand is a slow path: export writes matrix products
+    import onnx
+
+    model = onnx.load(str(onnx64))
+    ranks = {i.name: len(i.dims) for i in model.graph.initializer}
+    for node in model.graph.node:
+        if node.op_type == "MatMul":
+            assert all(ranks.get(name, 2) != 1 for name in node.input), node
+
+
 @pytest.mark.parametrize("dim", [2, 3])
 def test_pt2_round_trip_is_exact_and_pickle_free(tmp_path: Path, dim: int) -> None:
     demos = spiral_demos(dim=dim)
