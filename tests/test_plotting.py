@@ -55,14 +55,17 @@ def assert_png(path: Path) -> None:
 
 @pytest.mark.parametrize("dim", [2, 3])
 def test_plot_all_writes_every_plot_of_a_stable_policy(tmp_path: Path, dim: int) -> None:
-    # GIVEN a stable policy (in 3-D, plotted in the slice x3 = target) and a loss history
+    # GIVEN a stable policy (in 3-D, plotted in the slice x3 = target and as 3-D paths)
+    # and a loss history
     demos = line_demos(dim)
     policy = tiny_policy(demos)
     history = list(np.geomspace(1.0, 1e-3, 200))
     # WHEN every plot is written into a folder that does not exist yet
     paths = plot_all(policy, demos, tmp_path / "plots", history=history)
     # THEN each is a real PNG, and nothing else (no temporary file) is left in the folder
-    names = ["streamlines.png", "lyapunov.png", "rollout_lyapunov.png", "loss.png"]
+    names = ["streamlines.png", "lyapunov.png", "rollout_lyapunov.png"]
+    names += ["paths3d.png"] if dim == 3 else []
+    names += ["loss.png"]
     assert [p.name for p in paths] == names
     for path in paths:
         assert_png(path)
