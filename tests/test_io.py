@@ -1,3 +1,4 @@
+import dataclasses
 import json
 import pickle
 
@@ -105,3 +106,19 @@ def test_kind_picks_the_class_and_an_unknown_kind_is_refused(saved):
     (directory / "model.json").write_text(json.dumps(description))
     with pytest.raises(ModelFileError, match="unknown policy kind 'gmr'"):
         load_model(directory)
+
+
+def test_a_model_saved_before_the_near_target_decay_loads_without_it(saved, spiral):
+    # GIVEN a model.json written before PolicyConfig had decay_near (the key is absent)
+    policy, directory = saved
+    description = json.loads((directory / "model.json").read_text())
+    del description["policy"]["decay_near"]
+    (directory / "model.json").write_text(json.dumps(description))
+    # WHEN it is loaded, THEN it is the policy it was trained as: without the term
+    loaded, _ = load_model(directory)
+    assert loaded.config.decay_near == 0.0
+    old = make_policy(spiral, dataclasses.replace(policy.config, decay_near=0.0), seed=11)
+    old.load_state_dict(policy.state_dict())
+    x = torch.randn(1000, 2, dtype=torch.float64) * 0.3
+    assert torch.equal(old(x), loaded(x))
+    assert not torch.equal(policy(x), loaded(x))

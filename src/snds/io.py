@@ -195,7 +195,10 @@ def load_model(directory: Path) -> tuple[Policy, dict]:
 def _build(path: Path, cls: type[Policy], description: dict) -> Policy:
     """The policy ``description`` describes, with fresh weights; a ModelFileError if invalid."""
     try:
-        config = cls.config_class(**description["policy"])
+        fields = dict(description["policy"])
+        for name, before in getattr(cls.config_class, "BEFORE_ADDED", {}).items():
+            fields.setdefault(name, before)
+        config = cls.config_class(**fields)
         normalization = Normalization.from_dict(description["normalization"])
         dim = description["dim"]
         # bool is an int to Python, and int("2") would accept text: only a true integer will do.

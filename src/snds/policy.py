@@ -106,6 +106,10 @@ class PolicyConfig:
     rectifier: str = "relu"
     stable: bool = True
 
+    #: Fields added after models were first saved, with the value that reproduces those models
+    #: (a model.json without the field predates it): the near-target decay was off before.
+    BEFORE_ADDED: ClassVar[dict[str, Any]] = {"decay_near": 0.0}
+
     def __post_init__(self) -> None:
         object.__setattr__(self, "hidden", tuple(self.hidden))
         object.__setattr__(self, "lyapunov_hidden", tuple(self.lyapunov_hidden))
