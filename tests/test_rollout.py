@@ -69,6 +69,7 @@ def test_guarded_step_keeps_a_safe_step_unchanged():
     policy = linear_policy(5.0)
     lyapunov, rate = policy_guard(policy)
     x = torch.randn(100, 2, dtype=torch.float64)
-    stepped, h = guarded_step(policy, lyapunov, x, dt=0.05, rate=rate)
+    stepped, h, value = guarded_step(policy, lyapunov, x, dt=0.05, rate=rate)
     assert (h == 0.05).all()
     torch.testing.assert_close(stepped, x + 0.05 * policy(x))
+    torch.testing.assert_close(value, lyapunov(stepped))

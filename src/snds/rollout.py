@@ -68,7 +68,8 @@ def guarded_step(
     rate: Rate | None = None,
     sufficient: float = 0.5,
     max_halvings: int = 30,
-) -> tuple[Tensor, Tensor]:
+    value: Tensor | None = None,
+) -> tuple[Tensor, Tensor, Tensor]:
     r"""One Euler step per state, halved until it decreases V enough.
 
     A continuous-time decrease :math:`\dot V \le -a` does not make every Euler step
@@ -93,26 +94,34 @@ def guarded_step(
             their values; None asks only that V drop.
         sufficient: The fraction c of the promised decrease a step must achieve.
         max_halvings: Give up shortening after this many halvings (then the step is taken).
+        value: V at ``x``, shape (B,), if known (the previous step returned it); else computed.
 
     Returns:
-        The next states, shape (B, n), and the steps taken, shape (B,).
+        The next states, shape (B, n), the steps taken, shape (B,), and V at the next states,
+        shape (B,), to pass to the next step.
     """
     velocity = field(x)
-    value = lyapunov(x)
+    if value is None:
+        value = lyapunov(x)
     required = torch.zeros_like(value) if rate is None else sufficient * rate(x, value)
     h = torch.full_like(value, dt)
     candidate = x + dt * velocity
+    new = lyapunov(candidate)
+
+    def failing(index: Tensor) -> Tensor:
+        old = value[index]
+        return ~((new[index] <= old - h[index] * required[index]) & (new[index] < old))
+
     pending = (value > 0).nonzero().squeeze(-1)
+    pending = pending[failing(pending)]
     for _ in range(max_halvings):
         if len(pending) == 0:
             break
-        new = lyapunov(candidate[pending])
-        old = value[pending]
-        ok = (new <= old - h[pending] * required[pending]) & (new < old)
-        pending = pending[~ok]
         h[pending] = 0.5 * h[pending]
         candidate[pending] = x[pending] + h[pending].unsqueeze(-1) * velocity[pending]
-    return candidate, h
+        new[pending] = lyapunov(candidate[pending])
+        pending = pending[failing(pending)]
+    return candidate, h, new
 
 
 @dataclass(frozen=True)
@@ -150,10 +159,12 @@ def guarded_rollout(
         rate: The promised decrease rate (see :func:`guarded_step`); None: V must only drop.
         max_halvings: Give up shortening after this many halvings (then the step is taken).
     """
-    x = x0
+    x, value = x0, None
     states, taken = [x0], []
     for _ in range(steps):
-        x, h = guarded_step(field, lyapunov, x, dt=dt, rate=rate, max_halvings=max_halvings)
+        x, h, value = guarded_step(
+            field, lyapunov, x, dt=dt, rate=rate, max_halvings=max_halvings, value=value
+        )
         states.append(x)
         taken.append(h)
     return GuardedRollout(torch.stack(states), torch.stack(taken))

@@ -324,9 +324,13 @@ def _roll_out_and_settle(
         radius = 0.5 * tolerance / policy.normalization.length
         level = policy.lyapunov.quadratic * radius**2
         lyapunov, rate = policy_guard(policy)
+        # V at every state, kept from the guarded steps, which compute it anyway.
+        value = lyapunov(x)
     for step in range(steps + 1):
         if step > 0 and level is not None:
-            x[active], h = guarded_step(policy, lyapunov, x[active], dt=dt, rate=rate)
+            x[active], h, value[active] = guarded_step(
+                policy, lyapunov, x[active], dt=dt, rate=rate, value=value[active]
+            )
             shortened[active[h < dt]] = True
         elif step > 0:
             x[active] = x[active] + dt * policy(x[active])
@@ -335,8 +339,7 @@ def _roll_out_and_settle(
         if step % every == 0:
             visited.append(x[active].clone())
             if level is not None:
-                settled = policy.lyapunov(policy.to_model(x[active])) < level
-                active = active[~settled]
+                active = active[value[active] >= level]
         if len(active) == 0:
             break
     final = (x - target).norm(dim=-1)
