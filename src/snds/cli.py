@@ -24,8 +24,8 @@ from snds.data import (
 from snds.errors import ConfigError, SNDSError
 from snds.evaluate import evaluate
 from snds.io import load_model, remove_temporaries, save_model, to_jsonable, write_json
-from snds.policy import PolicyConfig, StablePolicy
-from snds.train import CHECKPOINT, TrainConfig, fit
+from snds.policy import Policy, PolicyConfig, StablePolicy
+from snds.train import CHECKPOINT, TrainConfig, TrainResult, fit
 
 #: ``snds train --architecture`` choices: overrides of :class:`PolicyConfig`'s network sizes.
 #: "compact" is for controllers that evaluate large batches (measured in benchmarks/README.md).
@@ -298,6 +298,41 @@ def _check_sizes(args: argparse.Namespace) -> None:
         raise ConfigError(f"--samples must be >= 0, got {args.samples}")
 
 
+def _train_settings(args: argparse.Namespace) -> tuple[dict, TrainConfig]:
+    """The split record and the optimisation settings of ``snds train``'s arguments."""
+    split_record = {
+        "test_fraction": args.test_fraction,
+        "seed": args.seed,
+        "test_demos": args.test_demos,
+    }
+    train_config = TrainConfig(
+        steps=args.steps,
+        window=args.window,
+        velocity_shape=args.velocity_loss,
+        seed=args.seed,
+        device=args.device,
+    )
+    return split_record, train_config
+
+
+def _save_run(
+    out: Path, policy: Policy, result: TrainResult, *, data: dict, split: dict, train: TrainConfig
+) -> None:
+    """Writes a trained model with the record of how it was trained, and its loss history."""
+    policy.to("cpu")
+    # Results of an earlier run must not sit beside the new model if this one is killed.
+    for name in ("metrics.json", "loss.json"):
+        (out / name).unlink(missing_ok=True)
+    record = {
+        "data": data,
+        "split": split,
+        "train": train.to_dict(),
+        "train_result": {k: v for k, v in dataclasses.asdict(result).items() if k != "history"},
+    }
+    save_model(policy, out, extra=record)
+    write_json(out / "loss.json", {"history": result.history})
+
+
 def _train(args: argparse.Namespace) -> int:
     _check_sizes(args)
     if args.se3 or (args.data is not None and _is_pose_file(args.data)):
@@ -307,24 +342,13 @@ def _train(args: argparse.Namespace) -> int:
         return _train_se3(args)
     demos = _load_data(args.motion, args.data, args.demos)
     out = args.out or Path("runs") / (demos.name or Path(str(args.data)).stem)
-    split_record = {
-        "test_fraction": args.test_fraction,
-        "seed": args.seed,
-        "test_demos": args.test_demos,
-    }
+    split_record, train_config = _train_settings(args)
     split = _make_split(demos, split_record)
     policy_config = PolicyConfig(
         **ARCHITECTURES[args.architecture],
         decay_rate=args.decay_rate,
         decay_near=args.decay_near,
         stable=not args.unconstrained,
-    )
-    train_config = TrainConfig(
-        steps=args.steps,
-        window=args.window,
-        velocity_shape=args.velocity_loss,
-        seed=args.seed,
-        device=args.device,
     )
     policy = StablePolicy(
         dim=demos.dim,
@@ -349,18 +373,7 @@ def _train(args: argparse.Namespace) -> int:
         checkpoint=checkpoint,
         checkpoint_every=args.checkpoint_every,
     )
-    policy.to("cpu")
-    # Results of an earlier run must not sit beside the new model if this one is killed.
-    for name in ("metrics.json", "loss.json"):
-        (out / name).unlink(missing_ok=True)
-    record = {
-        "data": _source(args),
-        "split": split_record,
-        "train": train_config.to_dict(),
-        "train_result": {k: v for k, v in dataclasses.asdict(result).items() if k != "history"},
-    }
-    save_model(policy, out, extra=record)
-    write_json(out / "loss.json", {"history": result.history})
+    _save_run(out, policy, result, data=_source(args), split=split_record, train=train_config)
     metrics = evaluate(
         policy,
         demos,
@@ -609,32 +622,11 @@ def _train_se3(args: argparse.Namespace) -> int:
         decay_rate=args.decay_rate, decay_near=args.decay_near, stable=not args.unconstrained
     )
     policy, demos = make_pose_policy(poses, config=config, seed=args.seed)
-    split_record = {
-        "test_fraction": args.test_fraction,
-        "seed": args.seed,
-        "test_demos": args.test_demos,
-    }
+    split_record, train_config = _train_settings(args)
     split = _make_split(demos, split_record)
-    train_config = TrainConfig(
-        steps=args.steps,
-        window=args.window,
-        velocity_shape=args.velocity_loss,
-        seed=args.seed,
-        device=args.device,
-    )
     result = fit(policy, demos, split, train_config, progress=not args.quiet)
-    policy.to("cpu")
-    for name in ("metrics.json", "loss.json"):
-        (out / name).unlink(missing_ok=True)
     source = {**_source(args), "orientation_seed": args.seed}
-    record = {
-        "data": source,
-        "split": split_record,
-        "train": train_config.to_dict(),
-        "train_result": {k: v for k, v in dataclasses.asdict(result).items() if k != "history"},
-    }
-    save_model(policy, out, extra=record)
-    write_json(out / "loss.json", {"history": result.history})
+    _save_run(out, policy, result, data=source, split=split_record, train=train_config)
     metrics = evaluate_pose(
         policy, poses, split, seed=args.seed, rollouts=args.rollouts, samples=args.samples
     )
