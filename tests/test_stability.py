@@ -4,7 +4,7 @@ import numpy as np
 import torch
 
 from snds.data import Demonstration, Demonstrations
-from snds.stability import check_stability, decrease_violations
+from snds.stability import check_stability, decrease_violations, settle_level
 
 from conftest import SMALL, make_policy
 
@@ -131,3 +131,29 @@ def test_report_shows_no_shortened_steps_where_euler_is_safe():
     assert report.converged_fraction == 1.0
     assert report.shortened_fraction == 0.0
     assert report.largest_safe_dt > 0.05
+
+
+class _Anisotropic(torch.nn.Module):
+    """V = x1^2 + 9 x2^2 (+ x3^2): no floor declared, so the level must come from the sphere."""
+
+    quadratic = 0.0
+
+    def forward(self, x):
+        weights = torch.ones(x.shape[-1], dtype=x.dtype)
+        weights[1] = 9.0
+        return (weights * x * x).sum(-1)
+
+
+def test_settle_level_keeps_its_sublevel_set_inside_the_ball():
+    radius = 0.3
+    for dim in (2, 3):
+        level = settle_level(_Anisotropic(), radius, dim=dim)
+        # The smallest V on the sphere is radius^2 (along x1), and the level is half of it.
+        assert np.isclose(level, 0.5 * radius**2, rtol=1e-3)
+        x = torch.as_tensor(np.random.default_rng(dim).normal(size=(100_000, dim)))
+        inside = _Anisotropic()(x) < level
+        assert inside.sum() > 0 and bool((x[inside].norm(dim=-1) < radius).all())
+    # With a quadratic floor d the exact level d r^2 is used.
+    floor = _Anisotropic()
+    floor.quadratic = 1.0
+    assert settle_level(floor, radius, dim=2) == radius**2

@@ -281,6 +281,36 @@ def _stalled(
     return attractors, int(len(ends) - len(stalled))
 
 
+def settle_level(lyapunov: torch.nn.Module, radius: float, *, dim: int, count: int = 4096) -> float:
+    r"""A level c whose sublevel set :math:`\{V < c\}` lies inside the ball :math:`|x| < r`.
+
+    With a quadratic floor :math:`V \ge d |x|^2` (model coordinates), :math:`c = d r^2`
+    exactly. Without one (``quadratic = 0``, SDS-EF), c is half the smallest V found on
+    ``count`` points of the sphere :math:`|x| = r` (a seeded Fibonacci lattice in 2-D, a seeded
+    uniform sample above). That is enough: the sublevel sets of a strict Lyapunov function are
+    connected (each component would hold a minimum of V, a critical point, and the only one is
+    the target), so a set that contains the target and misses the sphere lies inside it. The
+    sample makes c a well-founded estimate rather than a bound; the factor 1/2 is its margin.
+
+    Arguments:
+        lyapunov: V in model coordinates, with its ``quadratic`` floor d.
+        radius: r, in model coordinates.
+        dim: The state dimension n.
+        count: Points on the sphere when there is no floor.
+    """
+    floor = float(lyapunov.quadratic)
+    if floor > 0:
+        return floor * radius**2
+    if dim == 2:
+        angles = torch.arange(count, dtype=torch.float64) * (2 * torch.pi / count)
+        directions = torch.stack([angles.cos(), angles.sin()], dim=-1)
+    else:
+        generator = torch.Generator().manual_seed(0)
+        directions = torch.randn(count, dim, generator=generator, dtype=torch.float64)
+        directions = directions / directions.norm(dim=-1, keepdim=True)
+    return 0.5 * float(lyapunov(radius * directions).min())
+
+
 @dataclass(frozen=True)
 class _Arrivals:
     final_state: torch.Tensor  # (B, n)
@@ -306,13 +336,12 @@ def _roll_out_and_settle(
     A policy with a Lyapunov function is integrated with the guarded Euler step
     (:func:`snds.rollout.guarded_step`), the discrete-time counterpart of its guarantee, and
     each rollout records whether a step had to be shortened (where it did not, the rollout is
-    exactly the plain Euler one). V >= d |x - x*|^2 (model coordinates), so the sublevel set
-    {V < d r^2} lies inside the ball of radius r = tolerance / 2, and guarded steps never
-    leave it since they never increase V. A start whose state enters that set is settled: it
-    would still be within the tolerance at the end of the horizon, so it is no longer
-    integrated. This makes the check cost the time the rollouts take to arrive, not the whole
-    horizon. A policy without a Lyapunov function takes plain Euler steps for the whole
-    horizon.
+    exactly the plain Euler one). The sublevel set {V < c} of :func:`settle_level` lies inside
+    the ball of radius r = tolerance / 2, and guarded steps never leave it since they never
+    increase V. A start whose state enters that set is settled: it would still be within the
+    tolerance at the end of the horizon, so it is no longer integrated. This makes the check
+    cost the time the rollouts take to arrive, not the whole horizon. A policy without a
+    Lyapunov function takes plain Euler steps for the whole horizon.
     """
     x = starts.clone()
     active = torch.arange(len(starts))
@@ -322,7 +351,7 @@ def _roll_out_and_settle(
     level = None
     if policy.stable:
         radius = 0.5 * tolerance / policy.normalization.length
-        level = policy.lyapunov.quadratic * radius**2
+        level = settle_level(policy.lyapunov, radius, dim=starts.shape[-1])
         lyapunov, rate = policy_guard(policy)
         # V at every state, kept from the guarded steps, which compute it anyway.
         value = lyapunov(x)

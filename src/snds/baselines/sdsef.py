@@ -409,18 +409,18 @@ class SDSEFPolicy(Policy):
     policy claims half that rate, :math:`a(x) = k(x) V(x)` (:meth:`decay`), leaving the other
     half as room for rounding.
 
-    **Limits.** The guarantee is for the continuous-time flow. The decrease is exact only up
-    to the rounding of the Jacobian solve (one triangular step per layer); with affine
-    couplings the Jacobian gets ill-conditioned far from the data, where the rounding can
-    exceed the decrease and where explicit Euler steps of the demonstrations' size can
-    overshoot and diverge, while additive couplings (the default) keep :math:`J_\phi` and
-    :math:`J_\phi^{-1}` bounded. :math:`V` is not convex, so the stability check's
-    largest-safe-Euler-step bisection, exact for a convex V, is only a heuristic here; and
-    with no known quadratic floor (``quadratic = 0``) the check cannot stop a rollout early
-    once it is settled, and integrates the whole horizon. Exponential decrease of V does not
-    bound the time to reach a metric tolerance uniformly, since :math:`\phi^{-1}` may
-    stretch. Near the target the field is :math:`\pi(x) \approx -k(0) x` (the Jacobians
-    cancel): every motion ends on a straight, radial approach.
+    **Limits.** The guarantee is for the continuous-time flow. The decrease is exact only up to
+    the rounding of the Jacobian solve (one triangular step per layer); with affine couplings
+    the Jacobian gets ill-conditioned far from the data, where the rounding can exceed the
+    decrease and where explicit Euler steps of the demonstrations' size can overshoot and
+    diverge, while additive couplings (the default) keep :math:`J_\phi` and :math:`J_\phi^{-1}`
+    bounded. :math:`V` is not convex, so the stability check's largest-safe-Euler-step
+    bisection, exact for a convex V, is only a heuristic here; and with no known quadratic floor
+    (``quadratic = 0``) the check's early stop of settled rollouts rests on a sampled level (see
+    :func:`snds.stability.settle_level`). Exponential decrease of V does not bound the time to
+    reach a metric tolerance uniformly, since :math:`\phi^{-1}` may stretch. Near the target the
+    field is :math:`\pi(x) \approx -k(0) x` (the Jacobians cancel): every motion ends on a
+    straight, radial approach.
 
     Arguments:
         dim: State dimension n >= 2 (coupling layers split the state in two).
