@@ -220,7 +220,9 @@ CASES: dict[str, Case] = {
         DataError,
         "do not end at a common target",
     ),
-    "demos that never move": Case(never_move, DataError, "zero extent"),
+    "demos that never move": Case(
+        never_move, DataError, "still.csv: demonstrations have zero extent"
+    ),
     "unknown motion": Case(unknown_motion, DataError, "unknown LASA motion 'Sinus'"),
     "bad setting": Case(
         setting(["--steps", "0"], lambda: TrainConfig(steps=0)),

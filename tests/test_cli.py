@@ -118,3 +118,25 @@ def test_malformed_demo_list_is_a_usage_error(capsys):
         main(["train", "--motion", "Sine", "--demos", "1,x"])
     assert exit_info.value.code == 2
     assert "indices" in capsys.readouterr().err
+
+
+def test_max_end_spread_merges_far_ends_and_is_recorded_for_evaluate(tmp_path, capsys):
+    path = tmp_path / "far.csv"
+    # Two demonstrations whose ends lie 1 apart: 45% of the extent from their mean.
+    rows = ["demo,t,x1,x2"]
+    for demo, end in enumerate((0.0, 1.0)):
+        rows += [f"{demo},{t / 10},{1 - t / 10 + end * t / 10},{1 - t / 10}" for t in range(11)]
+    path.write_text("\n".join(rows) + "\n")
+    out = tmp_path / "merged"
+    argv = ["--quiet", "train", "--data", str(path), "--out", str(out), *FAST]
+    assert main(argv) == 2
+    assert "--max-end-spread" in capsys.readouterr().err
+    assert not out.exists()
+    assert main([*argv, "--max-end-spread", "0.5"]) == 0
+    assert json.loads((out / "model.json").read_text())["data"]["max_end_spread"] == 0.5
+    # evaluate reloads the file with the recorded spread, not the default that refuses it.
+    assert main(["--quiet", "evaluate", str(out), "--rollouts", "50", "--samples", "1000"]) == 0
+    with pytest.raises(SystemExit) as exit_info:
+        main([*argv, "--max-end-spread", "-1"])
+    assert exit_info.value.code == 2
+    assert "--max-end-spread: expected a number >= 0" in capsys.readouterr().err

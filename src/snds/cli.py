@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -12,6 +13,7 @@ from pathlib import Path
 import torch
 
 from snds.data import (
+    MAX_END_SPREAD,
     Demonstrations,
     Normalization,
     Split,
@@ -65,6 +67,16 @@ def _push(text: str):
     return Push(step=int(step), displacement=tuple(displacement))
 
 
+def _end_spread(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not (math.isfinite(value) and value >= 0):
+        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}")
+    return value
+
+
 def _data_arguments(parser: argparse.ArgumentParser, *, required: bool) -> None:
     source = parser.add_mutually_exclusive_group(required=required)
     source.add_argument("--motion", help="a LASA handwriting motion, e.g. Sine")
@@ -74,6 +86,13 @@ def _data_arguments(parser: argparse.ArgumentParser, *, required: bool) -> None:
         type=_demo_choice,
         default=None,
         help="K: the first K demonstrations; I,J,...: these demonstrations (0-based)",
+    )
+    parser.add_argument(
+        "--max-end-spread",
+        type=_end_spread,
+        default=None,
+        help="largest distance of a file's demonstration end from their common target, in "
+        "extents (default 0.25; a model records the value it was trained with)",
     )
 
 
@@ -262,13 +281,20 @@ def _build_parser() -> argparse.ArgumentParser:
 
 
 def _load_data(
-    motion: str | None, data: Path | None, demos: int | list[int] | None
+    motion: str | None,
+    data: Path | None,
+    demos: int | list[int] | None,
+    max_end_spread: float | None = None,
 ) -> Demonstrations:
+    spread = MAX_END_SPREAD if max_end_spread is None else max_end_spread
     if motion is None and demos is not None:
         # Selected before the target is chosen: a file may end at several places.
         select = list(range(demos)) if isinstance(demos, int) else demos
-        return load_demonstrations(data, select=select)
-    loaded = load_lasa(motion) if motion is not None else load_demonstrations(data)
+        return load_demonstrations(data, select=select, max_end_spread=spread)
+    if motion is not None:
+        loaded = load_lasa(motion)
+    else:
+        loaded = load_demonstrations(data, max_end_spread=spread)
     if demos is None:
         return loaded
     return loaded.first(demos) if isinstance(demos, int) else loaded.select(demos)
@@ -287,7 +313,8 @@ def _make_split(demos: Demonstrations, record: dict) -> Split:
 def _source(args: argparse.Namespace) -> dict:
     if args.motion is not None:
         return {"motion": args.motion, "demos": args.demos}
-    return {"file": str(Path(args.data).resolve()), "demos": args.demos}
+    spread = MAX_END_SPREAD if args.max_end_spread is None else args.max_end_spread
+    return {"file": str(Path(args.data).resolve()), "demos": args.demos, "max_end_spread": spread}
 
 
 def _check_sizes(args: argparse.Namespace) -> None:
@@ -340,7 +367,7 @@ def _train(args: argparse.Namespace) -> int:
             # Refused rather than ignored: a user must not believe a pose run resumed.
             raise ConfigError("--resume is not available for SE(3) training yet")
         return _train_se3(args)
-    demos = _load_data(args.motion, args.data, args.demos)
+    demos = _load_data(args.motion, args.data, args.demos, args.max_end_spread)
     out = args.out or Path("runs") / (demos.name or Path(str(args.data)).stem)
     split_record, train_config = _train_settings(args)
     split = _make_split(demos, split_record)
@@ -401,11 +428,13 @@ def _model_and_data(args: argparse.Namespace) -> tuple[StablePolicy, dict, Demon
         if "motion" in source:
             demos = _load_data(source["motion"], None, source.get("demos"))
         elif "file" in source:
-            demos = _load_data(None, Path(source["file"]), source.get("demos"))
+            demos = _load_data(
+                None, Path(source["file"]), source.get("demos"), source.get("max_end_spread")
+            )
         else:
             raise SNDSError(f"{args.model}: no data recorded; pass --motion or --data")
     else:
-        demos = _load_data(args.motion, args.data, args.demos)
+        demos = _load_data(args.motion, args.data, args.demos, args.max_end_spread)
     if demos.dim != policy.dim:
         raise SNDSError(
             f"the data has dimension {demos.dim}, the model in {args.model} {policy.dim}"
@@ -599,7 +628,9 @@ def _is_pose_model(directory: Path) -> bool:
     return read_description(directory).get("kind") == "se3"
 
 
-def _pose_data(motion: str | None, data: Path | None, demos, seed: int):
+def _pose_data(
+    motion: str | None, data: Path | None, demos, seed: int, max_end_spread: float | None = None
+):
     """Pose demonstrations: a pose file as it is, or position data (LASA, .mat, ...) lifted
     with synthetic orientations seeded by ``seed`` (see
     :func:`snds.data.poses.with_synthetic_orientations`)."""
@@ -607,14 +638,16 @@ def _pose_data(motion: str | None, data: Path | None, demos, seed: int):
 
     if data is not None and _is_pose_file(data):
         select = list(range(demos)) if isinstance(demos, int) else demos
-        return load_poses(data, select=select)
-    return with_synthetic_orientations(_load_data(motion, data, demos), seed=seed)
+        spread = MAX_END_SPREAD if max_end_spread is None else max_end_spread
+        return load_poses(data, select=select, max_end_spread=spread)
+    loaded = _load_data(motion, data, demos, max_end_spread)
+    return with_synthetic_orientations(loaded, seed=seed)
 
 
 def _train_se3(args: argparse.Namespace) -> int:
     from snds.se3 import evaluate_pose, make_pose_policy
 
-    poses = _pose_data(args.motion, args.data, args.demos, args.seed)
+    poses = _pose_data(args.motion, args.data, args.demos, args.seed, args.max_end_spread)
     out = args.out or Path("runs") / f"{poses.name or Path(str(args.data)).stem}-se3"
     if out.exists() and not out.is_dir():
         raise ConfigError(f"--out {out}: is a file, not a directory")
@@ -646,10 +679,11 @@ def _pose_model_and_data(args: argparse.Namespace):
     source = description.get("data", {})
     seed = int(source.get("orientation_seed", 0))
     if args.motion is not None or args.data is not None:
-        poses = _pose_data(args.motion, args.data, args.demos, seed)
+        poses = _pose_data(args.motion, args.data, args.demos, seed, args.max_end_spread)
     elif "motion" in source or "file" in source:
         data = Path(source["file"]) if "file" in source else None
-        poses = _pose_data(source.get("motion"), data, source.get("demos"), seed)
+        spread = source.get("max_end_spread")
+        poses = _pose_data(source.get("motion"), data, source.get("demos"), seed, spread)
     else:
         raise SNDSError(f"{args.model}: no data recorded; pass --motion or --data")
     return policy, description, poses

@@ -181,10 +181,13 @@ class Normalization:
         """Maps the target to 0, the extent to 1, and the fastest demonstrated speed to 1."""
         length = demos.extent()
         speed = demos.max_speed()
+        named = f"{demos.name}: " if demos.name else ""
         if length <= 0:
-            raise DataError("demonstrations have zero extent (every sample is at the target)")
+            raise DataError(
+                f"{named}demonstrations have zero extent (every sample is at the target)"
+            )
         if speed <= 0:
-            raise DataError("demonstrations never move (every velocity is zero)")
+            raise DataError(f"{named}demonstrations never move (every velocity is zero)")
         return cls(center=demos.target, length=length, time=length / speed)
 
     def positions_to_model(self, x: np.ndarray) -> np.ndarray:

@@ -18,7 +18,7 @@ import numpy as np
 import scipy.io
 
 from snds.data.demonstrations import Demonstration, Demonstrations
-from snds.data.targets import common_target
+from snds.data.targets import MAX_END_SPREAD, common_target
 from snds.errors import DataError
 
 DEFAULT_DT = 0.01
@@ -29,7 +29,7 @@ NPZ_KEYS = ("pos", "vel", "t", "dt")
 
 
 def load_demonstrations(
-    path: str | Path, *, max_end_spread: float = 0.25, select: Sequence[int] | None = None
+    path: str | Path, *, max_end_spread: float = MAX_END_SPREAD, select: Sequence[int] | None = None
 ) -> Demonstrations:
     """Loads a demonstrations file, choosing the reader by its extension (see :data:`LOADERS`).
 
@@ -54,7 +54,7 @@ def load_demonstrations(
 
 
 def load_mat(
-    path: str | Path, *, max_end_spread: float = 0.25, select: Sequence[int] | None = None
+    path: str | Path, *, max_end_spread: float = MAX_END_SPREAD, select: Sequence[int] | None = None
 ) -> Demonstrations:
     """Loads demonstrations from a MATLAB file (v4 to v7.2) in one of the LPV-DS layouts.
 
@@ -92,7 +92,7 @@ def load_mat(
 
 
 def load_csv(
-    path: str | Path, *, max_end_spread: float = 0.25, select: Sequence[int] | None = None
+    path: str | Path, *, max_end_spread: float = MAX_END_SPREAD, select: Sequence[int] | None = None
 ) -> Demonstrations:
     """Loads demonstrations from a CSV file with one row per sample.
 
@@ -130,7 +130,7 @@ def load_csv(
 
 
 def load_npz(
-    path: str | Path, *, max_end_spread: float = 0.25, select: Sequence[int] | None = None
+    path: str | Path, *, max_end_spread: float = MAX_END_SPREAD, select: Sequence[int] | None = None
 ) -> Demonstrations:
     """Loads demonstrations from a NumPy ``.npz`` archive of equally long demonstrations.
 
@@ -277,7 +277,11 @@ def _assemble(
                 raise DataError(f"demonstration index {i} out of range 0..{len(demos) - 1}")
         demos = [demos[i] for i in select]
     target, shifted = common_target(demos, max_end_spread=max_end_spread)
-    return Demonstrations(shifted, target, name)
+    assembled = Demonstrations(shifted, target, name)
+    # Refused here, inside the file's context, so that the message names the file.
+    if assembled.extent() <= 0:
+        raise DataError("demonstrations have zero extent (every sample is at the target)")
+    return assembled
 
 
 def _numeric(value: object, what: str) -> np.ndarray:

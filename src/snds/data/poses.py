@@ -37,7 +37,7 @@ from snds.data.files import (
     _numeric,
     _read_csv_rows,
 )
-from snds.data.targets import common_target
+from snds.data.targets import MAX_END_SPREAD, common_target
 from snds.errors import DataError
 
 POSE_CSV_HEADER = ("demo", "t", "x", "y", "z", "qx", "qy", "qz", "qw")
@@ -194,7 +194,7 @@ def angles_to(orientations: np.ndarray, target: np.ndarray) -> np.ndarray:
 def common_pose_target(
     demos: Sequence[PoseDemonstration],
     *,
-    max_end_spread: float = 0.25,
+    max_end_spread: float = MAX_END_SPREAD,
     max_end_angle: float = MAX_END_ANGLE,
 ) -> tuple[np.ndarray, np.ndarray, tuple[PoseDemonstration, ...]]:
     r"""One target pose for all demonstrations, and each demonstration moved onto it.
@@ -318,7 +318,7 @@ def is_pose_file(path: str | Path) -> bool:
 def load_poses(
     path: str | Path,
     *,
-    max_end_spread: float = 0.25,
+    max_end_spread: float = MAX_END_SPREAD,
     max_end_angle: float = MAX_END_ANGLE,
     select: Sequence[int] | None = None,
 ) -> PoseDemonstrations:

@@ -9,6 +9,9 @@ import numpy as np
 from snds.data.demonstrations import Demonstration
 from snds.errors import DataError
 
+MAX_END_SPREAD = 0.25
+"""Default largest distance of a demonstration's end from the common target, in extents."""
+
 
 def common_target(
     demos: Sequence[Demonstration], *, max_end_spread: float
@@ -61,7 +64,8 @@ def common_target(
         raise DataError(
             f"demonstrations do not end at a common target: ends lie up to {spread:.4g} from "
             f"their mean, {spread / extent:.0%} of the motion's extent {extent:.4g}, more than "
-            f"max_end_spread={max_end_spread:g} allows; raise it if the ends should be merged"
+            f"max_end_spread={max_end_spread:g} allows; raise it (--max-end-spread) if the ends "
+            f"should be merged"
         )
     return target, tuple(_end_at(demo, target) for demo in demos)
 
