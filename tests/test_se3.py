@@ -212,13 +212,19 @@ def test_cli_trains_evaluates_and_plots_a_pose_file(pose_demos, tmp_path):
     checks = ["--rollouts", "5", "--samples", "200"]
     # WHEN it is trained, evaluated and plotted from the command line
     assert (
-        main(["--quiet", "train", "--data", str(data), "--steps", "20", "--out", str(out), *checks])
+        main(
+            ["--quiet", "train", "--data", str(data), "--steps", "20", "--out", str(out)]
+            + ["--architecture", "compact", *checks]
+        )
         == 0
     )
     assert main(["--quiet", "evaluate", str(out), *checks]) == 0
     assert main(["--quiet", "plot", str(out)]) == 0
     # THEN the model is a pose policy and every SE(3) metric and plot is there
-    assert json.loads((out / "model.json").read_text())["kind"] == "se3"
+    description = json.loads((out / "model.json").read_text())
+    assert description["kind"] == "se3"
+    # --architecture applies to pose policies as to positions.
+    assert description["policy"]["hidden"] == [64, 64]
     metrics = json.loads((out / "metrics.json").read_text())
     assert {"position_dtw", "orientation_error_along", "final_orientation_error"} <= set(metrics)
     assert metrics["stability"]["rollouts"] == 5

@@ -360,6 +360,16 @@ def _save_run(
     write_json(out / "loss.json", {"history": result.history})
 
 
+def _policy_config(args: argparse.Namespace) -> PolicyConfig:
+    """The architecture that ``snds train``'s flags ask for, for positions and poses alike."""
+    return PolicyConfig(
+        **ARCHITECTURES[args.architecture],
+        decay_rate=args.decay_rate,
+        decay_near=args.decay_near,
+        stable=not args.unconstrained,
+    )
+
+
 def _train(args: argparse.Namespace) -> int:
     _check_sizes(args)
     if args.se3 or (args.data is not None and _is_pose_file(args.data)):
@@ -371,16 +381,10 @@ def _train(args: argparse.Namespace) -> int:
     out = args.out or Path("runs") / (demos.name or Path(str(args.data)).stem)
     split_record, train_config = _train_settings(args)
     split = _make_split(demos, split_record)
-    policy_config = PolicyConfig(
-        **ARCHITECTURES[args.architecture],
-        decay_rate=args.decay_rate,
-        decay_near=args.decay_near,
-        stable=not args.unconstrained,
-    )
     policy = StablePolicy(
         dim=demos.dim,
         normalization=Normalization.fit(demos),
-        config=policy_config,
+        config=_policy_config(args),
         seed=args.seed,
     )
     if out.exists() and not out.is_dir():
@@ -651,10 +655,7 @@ def _train_se3(args: argparse.Namespace) -> int:
     out = args.out or Path("runs") / f"{poses.name or Path(str(args.data)).stem}-se3"
     if out.exists() and not out.is_dir():
         raise ConfigError(f"--out {out}: is a file, not a directory")
-    config = PolicyConfig(
-        decay_rate=args.decay_rate, decay_near=args.decay_near, stable=not args.unconstrained
-    )
-    policy, demos = make_pose_policy(poses, config=config, seed=args.seed)
+    policy, demos = make_pose_policy(poses, config=_policy_config(args), seed=args.seed)
     split_record, train_config = _train_settings(args)
     split = _make_split(demos, split_record)
     result = fit(policy, demos, split, train_config, progress=not args.quiet)
