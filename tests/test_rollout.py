@@ -73,3 +73,24 @@ def test_guarded_step_keeps_a_safe_step_unchanged():
     assert (h == 0.05).all()
     torch.testing.assert_close(stepped, x + 0.05 * policy(x))
     torch.testing.assert_close(value, lyapunov(stepped))
+
+
+def test_guarded_step_tests_the_state_its_own_advance_reaches():
+    # GIVEN a step map that overshoots outward for long steps (as a curved manifold's map may)
+    policy = linear_policy(1.0)
+    lyapunov, rate = policy_guard(policy)
+
+    def advance(x, h, velocity):
+        return x + h.unsqueeze(-1) * velocity + (4.0 * h * h).unsqueeze(-1) * x
+
+    x = torch.randn(200, 2, dtype=torch.float64)
+    value = lyapunov(x)
+    # The plain Euler step of 0.5 would be safe: V(x - 0.5 x) = V / 4.
+    assert (lyapunov(x + 0.5 * policy(x)) < value).all()
+    # WHEN the guarded step uses that map
+    stepped, h, new = guarded_step(policy, lyapunov, x, dt=0.5, rate=rate, advance=advance)
+    # THEN it is shortened until the decrease holds where the map really goes
+    assert (h < 0.5).all()
+    torch.testing.assert_close(stepped, advance(x, h, policy(x)))
+    torch.testing.assert_close(new, lyapunov(stepped))
+    assert (new <= value - 0.5 * h * rate(x, value)).all()

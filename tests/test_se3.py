@@ -177,6 +177,8 @@ def test_synthetic_pose_task_is_learned_and_converges(trained, untrained, pose_d
     assert report.converged_fraction == 1.0
     assert report.decrease_violations == 0
     assert report.max_final_angle <= report.angle_tolerance
+    # AND every guarded step on SO(3) lowered V (no step ran out of halvings)
+    assert report.v_rises == 0
 
 
 def no_split_for(pose_demos):

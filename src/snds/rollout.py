@@ -56,6 +56,12 @@ def rollout(field: Field, x0: Tensor, *, dt: float, steps: int, method: str = "e
 Lyapunov = Callable[[Tensor], Tensor]
 #: The promised decrease rate of V per unit time at states (B, n) with values (B,).
 Rate = Callable[[Tensor, Tensor], Tensor]
+#: One step of each state (B, m) along its velocity (B, k) for its own duration (B,).
+Advance = Callable[[Tensor, Tensor, Tensor], Tensor]
+
+
+def _euler_advance(x: Tensor, h: Tensor, velocity: Tensor) -> Tensor:
+    return x + h.unsqueeze(-1) * velocity
 
 
 @torch.no_grad()
@@ -69,6 +75,7 @@ def guarded_step(
     sufficient: float = 0.5,
     max_halvings: int = 30,
     value: Tensor | None = None,
+    advance: Advance = _euler_advance,
 ) -> tuple[Tensor, Tensor, Tensor]:
     r"""One Euler step per state, halved until it decreases V enough.
 
@@ -83,7 +90,9 @@ def guarded_step(
     holds, with :math:`c` = ``sufficient`` < 1 and :math:`a` = ``rate``. A smooth V makes the
     accepted step bounded below on every sublevel set, so with :math:`a = \rho V` the
     discrete V falls at least geometrically: the discrete-time counterpart of the guarantee.
-    A state at the target (V = 0) takes the plain step.
+    A state at the target (V = 0) takes the plain step. A state that does not live in a
+    vector space (a pose: position and unit quaternion) passes its own ``advance``, such as
+    the exponential map on SO(3); the condition is then tested at the state it really reaches.
 
     Arguments:
         field: The velocity field, (B, n) -> (B, n).
@@ -95,6 +104,8 @@ def guarded_step(
         sufficient: The fraction c of the promised decrease a step must achieve.
         max_halvings: Give up shortening after this many halvings (then the step is taken).
         value: V at ``x``, shape (B,), if known (the previous step returned it); else computed.
+        advance: The step (x, h, velocity) -> next state; by default the Euler step
+            :math:`x + h v`.
 
     Returns:
         The next states, shape (B, n), the steps taken, shape (B,), and V at the next states,
@@ -105,7 +116,7 @@ def guarded_step(
         value = lyapunov(x)
     required = torch.zeros_like(value) if rate is None else sufficient * rate(x, value)
     h = torch.full_like(value, dt)
-    candidate = x + dt * velocity
+    candidate = advance(x, h, velocity)
     new = lyapunov(candidate)
 
     def failing(index: Tensor) -> Tensor:
@@ -118,7 +129,7 @@ def guarded_step(
         if len(pending) == 0:
             break
         h[pending] = 0.5 * h[pending]
-        candidate[pending] = x[pending] + h[pending].unsqueeze(-1) * velocity[pending]
+        candidate[pending] = advance(x[pending], h[pending], velocity[pending])
         new[pending] = lyapunov(candidate[pending])
         pending = pending[failing(pending)]
     return candidate, h, new

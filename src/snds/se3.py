@@ -52,7 +52,8 @@ from snds.data.poses import PoseDemonstrations, angles_to
 from snds.errors import DataError
 from snds.metrics import dtw
 from snds.policy import PolicyConfig, StablePolicy, float64_copy
-from snds.stability import decrease_violations, largest_safe_step
+from snds.rollout import guarded_step, policy_guard
+from snds.stability import decrease_violations, largest_safe_step, settle_level
 
 # --- SO(3) maths -------------------------------------------------------------------------------
 
@@ -559,8 +560,9 @@ def check_pose_stability(
     Start positions are uniform in a box of half-width ``box_factor`` x the position extent
     around the target; start orientations are uniform over all of SO(3) (angles up to pi from
     the target). Rollouts (:func:`rollout_poses`, float64) run ``horizon_factor`` x the longest
-    demonstration's duration at the demonstrations' mean step (for a policy with V, each step
-    halved until V drops, as in every policy's check) and have converged if they end
+    demonstration's duration at the demonstrations' mean step (for a policy with V, the
+    guarded step of every policy's check, :func:`snds.rollout.guarded_step`, with the
+    exponential map as its step, so V falls at every step) and have converged if they end
     within ``tolerance_factor`` x the position extent and ``tolerance_factor`` x pi radians
     of the target pose. The decrease condition is checked, as for every policy, by
     :func:`snds.stability.decrease_violations` at random poses (positions in a box of
@@ -598,50 +600,66 @@ def check_pose_stability(
     last_outside = torch.full((rollouts,), -1, dtype=torch.long)
     rises = 0
     active = torch.arange(rollouts)
+    shortened = torch.zeros(rollouts, dtype=torch.bool)
+    # A pose is one row (p, q) of 7 numbers, so that the guarded step of every policy's check
+    # (snds.rollout.guarded_step) applies, with the exponential map as its step.
+    pose = torch.cat([p, q], -1)
     value = level = None
     if policy.stable:
-        value = policy.lyapunov(policy.to_model(policy.tangent(p, q)))
-        # V >= d |y~|^2 (model units): inside {V < d rho^2} a rollout stays within half of
-        # both tolerances for good (V never increases along the flow), so it is settled and
-        # no longer integrated; the check costs the time rollouts take to arrive.
+        tangent_v, tangent_rate = policy_guard(policy)
+
+        def lyapunov(x: Tensor) -> Tensor:
+            return tangent_v(policy.tangent(x[:, :3], x[:, 3:]))
+
+        def rate(x: Tensor, v: Tensor) -> Tensor:
+            return tangent_rate(policy.tangent(x[:, :3], x[:, 3:]), v)
+
+        value = lyapunov(pose)
+        # Inside {V < c} (snds.stability.settle_level, ball of radius rho in model units) a
+        # rollout stays within half of both tolerances for good, since guarded steps never
+        # increase V: it is settled and no longer integrated, so the check costs the time
+        # rollouts take to arrive.
         to_model = policy.scales.numpy() * policy.normalization.length
         radius = 0.5 * min(position_tolerance / to_model[0], angle_tolerance / to_model[3])
-        level = policy.lyapunov.quadratic * radius**2
-    shortened = torch.zeros(rollouts, dtype=torch.bool)
+        level = settle_level(policy.lyapunov, radius, dim=6)
 
-    def step_pose(pa: Tensor, qa: Tensor, twist: Tensor, h: Tensor) -> tuple[Tensor, Tensor]:
+    def field(x: Tensor) -> Tensor:
+        return policy.twist(x[:, :3], x[:, 3:])
+
+    def advance(x: Tensor, h: Tensor, twist: Tensor) -> Tensor:
         h = h[:, None]
-        return pa + h * twist[..., :3], roma.quat_normalize(rotate(h * twist[..., 3:], qa))
+        orientation = roma.quat_normalize(rotate(h * twist[:, 3:], x[:, 3:]))
+        return torch.cat([x[:, :3] + h * twist[:, :3], orientation], -1)
 
     for step in range(1, steps + 1):
-        pa, qa = p[active], q[active]
-        twist = policy.twist(pa, qa)
-        h = torch.full((len(active),), dt, dtype=p.dtype)
-        new_p, new_q = step_pose(pa, qa, twist, h)
-        if value is not None:
-            # Guarded step, as for every policy's check (snds.rollout.guarded_rollout): a
-            # continuous decrease does not make every Euler step decrease V, so a step is
-            # halved, per rollout, until V drops (V below 1e-12 is the target up to rounding).
-            now = value[active]
-            new = policy.lyapunov(policy.to_model(policy.tangent(new_p, new_q)))
-            for _ in range(max_halvings):
-                bad = (new >= now) & (now > 1e-12)
-                if not bool(bad.any()):
-                    break
-                h = torch.where(bad, 0.5 * h, h)
-                shortened[active[bad]] = True
-                new_p, new_q = step_pose(pa, qa, twist, h)
-                new = policy.lyapunov(policy.to_model(policy.tangent(new_p, new_q)))
-            rises += int(((new > now * (1 + 1e-9)) & (now > 1e-12)).sum())
+        now = pose[active]
+        if value is None:
+            pose[active] = advance(now, torch.full((len(now),), dt, dtype=now.dtype), field(now))
+        else:
+            pose[active], h, new = guarded_step(
+                field,
+                lyapunov,
+                now,
+                dt=dt,
+                rate=rate,
+                max_halvings=max_halvings,
+                value=value[active],
+                advance=advance,
+            )
+            shortened[active[h < dt]] = True
+            before = value[active]
+            # Only a step that ran out of halvings can raise V (V below 1e-12 is the target up
+            # to rounding).
+            rises += int(((new > before * (1 + 1e-9)) & (before > 1e-12)).sum())
             value[active] = new
-        p[active], q[active] = new_p, new_q
-        distance, angle = errors(new_p, new_q)
+        distance, angle = errors(pose[active, :3], pose[active, 3:])
         outside = (distance > position_tolerance) | (angle > angle_tolerance)
         last_outside[active[outside]] = step
         if value is not None and step % 10 == 0:
             active = active[value[active] >= level]
         if len(active) == 0:
             break
+    p, q = pose[:, :3], pose[:, 3:]
     distance, angle = errors(p, q)
     inside = (distance <= position_tolerance) & (angle <= angle_tolerance)
     times = (last_outside[inside] + 1).double() * dt
