@@ -2,6 +2,7 @@ import json
 
 import numpy as np
 import pytest
+import torch
 
 from snds.cli import main
 
@@ -140,3 +141,19 @@ def test_max_end_spread_merges_far_ends_and_is_recorded_for_evaluate(tmp_path, c
         main([*argv, "--max-end-spread", "-1"])
     assert exit_info.value.code == 2
     assert "--max-end-spread: expected a number >= 0" in capsys.readouterr().err
+
+
+def test_relaxed_mode_turns_every_decay_term_off():
+    from snds.cli import _build_parser, _policy_config
+    from snds.data import Normalization, load_lasa
+    from snds.policy import StablePolicy
+
+    zeros = ["--decay-rate", "0", "--decay-far", "0", "--decay-near", "0"]
+    args = _build_parser().parse_args(["train", "--motion", "Sine", *zeros])
+    config = _policy_config(args)
+    assert config.decay_rate == config.decay_far == config.decay_near == 0.0
+    demos = load_lasa("Sine")
+    policy = StablePolicy(dim=2, normalization=Normalization.fit(demos), config=config)
+    x = torch.randn(1000, 2, dtype=torch.float64) * 5
+    # a(x) = 0 far, near and in between: only dV/dt <= 0 is asked for.
+    assert (policy.decay(torch.ones(1000, dtype=torch.float64), x) == 0).all()

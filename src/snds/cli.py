@@ -143,8 +143,14 @@ def _build_parser() -> argparse.ArgumentParser:
         "--decay-rate",
         type=float,
         default=PolicyConfig.decay_rate,
-        help="rho in a(x) = rho V(x); 0 (with --decay-near 0) is the paper's relaxed mode "
-        "(dV/dt <= 0 only)",
+        help="rho in a(x) = rho V(x); 0 (with --decay-far 0 --decay-near 0) is the paper's "
+        "relaxed mode (dV/dt <= 0 only)",
+    )
+    train.add_argument(
+        "--decay-far",
+        type=float,
+        default=PolicyConfig.decay_far,
+        help="extra decay rate per extent beyond the demonstrations' extent (0: off)",
     )
     train.add_argument(
         "--decay-near",
@@ -365,6 +371,7 @@ def _policy_config(args: argparse.Namespace) -> PolicyConfig:
     return PolicyConfig(
         **ARCHITECTURES[args.architecture],
         decay_rate=args.decay_rate,
+        decay_far=args.decay_far,
         decay_near=args.decay_near,
         stable=not args.unconstrained,
     )

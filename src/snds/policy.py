@@ -74,8 +74,9 @@ class PolicyConfig:
         lyapunov_hidden: Hidden widths of the ICNN in V.
         lyapunov_activation: Convex activation of the ICNN.
         quadratic: Coefficient d of the quadratic floor of V.
-        decay_rate: rho in a(x) = rho V(x), per unit of model time (0: the paper's relaxed
-            mode, which only gives dV/dt <= 0 and does not rule out spurious equilibria).
+        decay_rate: rho in a(x) = rho V(x), per unit of model time (0, with decay_far and
+            decay_near 0 too: the paper's relaxed mode, which only gives dV/dt <= 0 and does
+            not rule out spurious equilibria).
         decay_far: Extra decay rate per unit of distance beyond the demonstrations' extent:
             a(x) = V(x) (rho + decay_far max(|x| - 1, 0)) in model coordinates. It speeds up
             the return from far away without constraining the fit on the data (|x| <= 1).
