@@ -239,10 +239,14 @@ def _build_parser() -> argparse.ArgumentParser:
         "--scale",
         type=float,
         default=None,
-        help="metres per unit of the task (default: fit the motion into the robot's reach)",
+        help="metres per unit of the task's positions (default: fit the motion into the "
+        "robot's reach)",
     )
     sim.add_argument(
-        "--start-demo", type=int, default=0, help="start at this demonstration's first state"
+        "--start-demo",
+        type=int,
+        default=0,
+        help="start at this demonstration's first state (a pose model: its first pose)",
     )
     sim.add_argument(
         "--control-rate", type=float, default=SimConfig.control_rate, help="control loop, Hz"
@@ -255,6 +259,13 @@ def _build_parser() -> argparse.ArgumentParser:
         type=float,
         default=SimConfig.tolerance,
         help="distance to the target (m) at which the run stops",
+    )
+    sim.add_argument(
+        "--angle-tolerance",
+        type=float,
+        default=SimConfig.angle_tolerance,
+        help="angle to the target orientation (rad) within which a pose model's run stops "
+        "(with the distance within --tolerance)",
     )
     sim.add_argument(
         "--frames", type=int, default=6, help="rendered frames in frames.png (0: none)"
@@ -523,10 +534,13 @@ def _benchmark(args: argparse.Namespace) -> int:
 
 
 def _simulate(args: argparse.Namespace) -> int:
+    import numpy as np
+
     from snds.sim import SimConfig, simulate
     from snds.sim.plots import plot_frames, plot_path, render_frames
 
-    policy, _, demos = _model_and_data(args)
+    pose = _is_pose_model(args.model)
+    policy, _, demos = _pose_model_and_data(args) if pose else _model_and_data(args)
     if not 0 <= args.start_demo < len(demos):
         raise SNDSError(f"--start-demo {args.start_demo}: there are {len(demos)} demonstrations")
     config = SimConfig(
@@ -535,9 +549,12 @@ def _simulate(args: argparse.Namespace) -> int:
         control_rate=args.control_rate,
         time_limit=args.time_limit,
         tolerance=args.tolerance,
+        angle_tolerance=args.angle_tolerance,
         push=args.push,
     )
-    start = demos[args.start_demo].positions[0]
+    first = demos[args.start_demo]
+    # A pose model starts from a pose: position and quaternion, 7 numbers.
+    start = np.r_[first.positions[0], first.orientations[0]] if pose else first.positions[0]
     result = simulate(policy, start, config)
     out = args.out or args.model / f"sim-{config.robot}"
     record = {
@@ -558,6 +575,8 @@ def _simulate(args: argparse.Namespace) -> int:
             else f"did not reach the target in {result.times[-1]:.2f} s"
         )
         line = f"{out}: {outcome}, final error {1000 * result.final_error:.2f} mm"
+        if result.drives_orientation:
+            line += f" and {result.final_orientation_error:.4f} rad"
         if result.push_time is not None:
             recovery = (
                 "never recovered"

@@ -8,7 +8,7 @@ from scipy.spatial.transform import Rotation
 
 from snds.sim.arm import joint_velocity, orientation_error
 from snds.sim.robots import ROBOTS, SimulationError, get_robot
-from snds.sim.run import Placement, Push, SimConfig
+from snds.sim.run import Placement, PosePlacement, Push, SimConfig
 
 
 @pytest.fixture
@@ -81,11 +81,46 @@ def test_placement_maps_the_task_into_the_work_plane(name: str) -> None:
     )
 
 
+def test_pose_placement_turns_the_task_rigidly_onto_the_rest_orientation() -> None:
+    # GIVEN a pose task with a target off the origin and a non-trivial target orientation
+    rng = np.random.default_rng(3)
+    robot = get_robot("iiwa")
+    rest = Rotation.random(random_state=rng).as_quat()
+    target_p, target_q = np.array([1.0, -2.0, 0.5]), Rotation.random(random_state=rng).as_quat()
+    placement = PosePlacement.for_task(robot, target_p, target_q, 0.02, rest)
+    # THEN the target pose lands on the work point in the rest orientation
+    origin, goal = placement.to_world(target_p, target_q)
+    np.testing.assert_allclose(origin, robot.plane_origin)
+    assert Rotation.from_quat(goal).approx_equal(Rotation.from_quat(rest), atol=1e-12)
+    for _ in range(20):
+        p, q = target_p + rng.normal(size=3), Rotation.random(random_state=rng)
+        world_p, world_q = placement.to_world(p, q.as_quat())
+        # poses round-trip, and the angle to the target is the world angle to the goal
+        back_p, back_q = placement.to_task(world_p, world_q)
+        np.testing.assert_allclose(back_p, p, atol=1e-12)
+        assert Rotation.from_quat(back_q).approx_equal(q, atol=1e-12)
+        angle = (q * Rotation.from_quat(target_q).inv()).magnitude()
+        assert np.linalg.norm(orientation_error(world_q, goal)) == pytest.approx(angle, abs=1e-9)
+        # a step of the task's twist is the same step of the world's twist: the flow maps
+        twist, dt = rng.normal(size=6), 0.01
+        stepped = placement.to_world(p + dt * twist[:3], _turn(dt * twist[3:], q))
+        world_twist = placement.twist_to_world(twist)
+        np.testing.assert_allclose(stepped[0], world_p + dt * world_twist[:3], atol=1e-12)
+        moved = Rotation.from_rotvec(dt * world_twist[3:]) * Rotation.from_quat(world_q)
+        assert moved.approx_equal(Rotation.from_quat(stepped[1]), atol=1e-12)
+
+
+def _turn(rotvec: np.ndarray, q: Rotation) -> np.ndarray:
+    return (Rotation.from_rotvec(rotvec) * q).as_quat()
+
+
 def test_bad_settings_are_refused() -> None:
     with pytest.raises(SimulationError, match="unknown robot"):
         get_robot("ur5")
     with pytest.raises(SimulationError, match="scale"):
         SimConfig(scale=-1.0)
+    with pytest.raises(SimulationError, match="angle tolerance"):
+        SimConfig(angle_tolerance=0.0)
     with pytest.raises(SimulationError):
         Push(step=-1, displacement=(0.0, 0.0, 0.0))
     with pytest.raises(SimulationError):

@@ -104,6 +104,10 @@ def test_record_is_json_with_the_settings(pushed_run) -> None:
     assert record["settings"]["push"]["step"] == 50
     assert record["reached"] is True
     assert len(record["joint_path"]) == len(record["time"]) == len(record["end_effector_path"])
+    # a position policy does not drive the orientation: the controller held it
+    assert record["drives_orientation"] is False and record["placement"]["rotation"] is None
+    assert len(record["orientation_path"]) == len(record["time"])
+    assert max(record["orientation_error_path_rad"]) < 0.05
 
 
 @pytest.mark.parametrize("robot", ["panda", "jaco2"])

@@ -1,15 +1,17 @@
 """Simulation: a learned policy drives a simulated robot arm (PyBullet, headless).
 
 Needs the ``sim`` extra (``pip install 'snds[sim]'``); the Kinova Jaco2 also needs the
-``jaco2`` extra. :func:`simulate` runs one motion; :mod:`snds.sim.plots` draws it.
+``jaco2`` extra. :func:`simulate` runs one motion of a position or an SE(3) pose policy;
+:mod:`snds.sim.plots` draws it.
 """
 
 from snds.sim.robots import ROBOTS, Robot, SimulationError, get_robot
-from snds.sim.run import Placement, Push, SimConfig, SimResult, simulate
+from snds.sim.run import Placement, PosePlacement, Push, SimConfig, SimResult, simulate
 
 __all__ = [
     "ROBOTS",
     "Placement",
+    "PosePlacement",
     "Push",
     "Robot",
     "SimConfig",

@@ -242,11 +242,23 @@ class Arm:
             self.client.stepSimulation()
 
     def move_to(
-        self, position: np.ndarray, orientation: np.ndarray, *, tolerance: float = 1e-5
+        self,
+        position: np.ndarray,
+        orientation: np.ndarray,
+        *,
+        tolerance: float = 1e-5,
+        angle_tolerance: float = 1e-4,
     ) -> float:
         """Places the end effector at a pose by resolved-rate steps without physics.
 
         Used to set up a start and to apply a displacement; joints stay within their limits.
+
+        Arguments:
+            position: World position of the tool point, shape (3,).
+            orientation: Its orientation, quaternion (x, y, z, w), shape (4,).
+            tolerance: Distance (metres) counted as there.
+            angle_tolerance: Angle (radians) counted as there: a pose policy's start
+                orientation is a state like its position, not only a hold.
 
         Returns:
             The remaining position error, metres.
@@ -256,10 +268,11 @@ class Arm:
         for _ in range(500):
             pose = self.end_effector()
             offset = position - pose.position
+            turn = orientation_error(pose.orientation, orientation)
             error = float(np.linalg.norm(offset))
-            if error <= tolerance:
+            if error <= tolerance and np.linalg.norm(turn) <= angle_tolerance:
                 break
-            twist = np.concatenate([offset, orientation_error(pose.orientation, orientation)])
+            twist = np.concatenate([offset, turn])
             step = joint_velocity(
                 self.jacobian(), twist, q, rest=self.rest, max_speed=np.full(q.size, 0.2)
             )

@@ -4,6 +4,8 @@ Like :mod:`snds.plotting`, every function draws on its own :class:`~matplotlib.f
 (never pyplot) and writes the PNG atomically. Frames come from PyBullet's TinyRenderer,
 which needs no display: the arm is put back at recorded joint positions and photographed,
 with the demonstrations (grey beads), the path so far (orange beads) and the target (green).
+The demonstrations may be positions (:class:`~snds.data.Demonstrations`) or poses
+(:class:`~snds.data.poses.PoseDemonstrations`): only their positions are drawn.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from snds.data.demonstrations import Demonstrations
+from snds.data.poses import PoseDemonstrations
 from snds.plotting import (
     DEMO_COLOR,
     DPI,
@@ -48,7 +51,7 @@ def frame_steps(result: SimResult, count: int) -> np.ndarray:
 
 def render_frames(
     result: SimResult,
-    demos: Demonstrations | None = None,
+    demos: Demonstrations | PoseDemonstrations | None = None,
     *,
     count: int = 6,
     width: int = 400,
@@ -108,11 +111,16 @@ def plot_frames(result: SimResult, frames: list[np.ndarray], steps: np.ndarray, 
     return _save(fig, path)
 
 
-def plot_path(result: SimResult, demos: Demonstrations | None, path) -> Path:
+def plot_path(result: SimResult, demos: Demonstrations | PoseDemonstrations | None, path) -> Path:
     """The end effector's path in the task's plane against the demonstrations, and its
-    distance to the target over time."""
-    fig = Figure(figsize=(10.0, 4.2), dpi=DPI, layout="constrained")
-    plane, distance = fig.subplots(1, 2, width_ratios=(1.25, 1.0))
+    distance to the target over time; for a run driven by a pose policy, also its angle to
+    the target orientation over time."""
+    if result.drives_orientation:
+        fig = Figure(figsize=(14.0, 4.2), dpi=DPI, layout="constrained")
+        plane, distance, angle = fig.subplots(1, 3, width_ratios=(1.25, 1.0, 1.0))
+    else:
+        fig = Figure(figsize=(10.0, 4.2), dpi=DPI, layout="constrained")
+        plane, distance = fig.subplots(1, 2, width_ratios=(1.25, 1.0))
     states = result.states
     if demos is not None:
         _draw_demos(plane, demos, color=DEMO_COLOR)
@@ -147,25 +155,38 @@ def plot_path(result: SimResult, demos: Demonstrations | None, path) -> Path:
     _despine(plane)
 
     error = np.linalg.norm(result.positions - result.placement.origin, axis=1)
-    distance.semilogy(result.times, np.maximum(error, 1e-6), color=ROLLOUT_COLOR)
-    distance.axhline(result.config.tolerance, color="0.5", linestyle=":", label="tolerance")
+    _draw_error(distance, result, error, result.config.tolerance, recovery=True)
+    distance.set_ylabel("distance to target (m)")
+    distance.set_title("distance to the target")
+    if result.drives_orientation:
+        _draw_error(angle, result, result.orientation_errors, result.config.angle_tolerance)
+        angle.set_ylabel("angle to target orientation (rad)")
+        angle.set_title("orientation error")
+    fig.suptitle(_headline(result), fontsize="medium")
+    return _save(fig, path)
+
+
+def _draw_error(
+    ax, result: SimResult, error: np.ndarray, tolerance: float, *, recovery: bool = False
+) -> None:
+    """An error (T,) over time on a log scale, with its tolerance, the push and (if asked)
+    the recovery after it."""
+    # The floor keeps an error of exactly 0 (a run that starts at the target) on the axis.
+    ax.semilogy(result.times, np.maximum(error, 1e-6), color=ROLLOUT_COLOR)
+    ax.axhline(tolerance, color="0.5", linestyle=":", label="tolerance")
     if result.push_time is not None:
-        distance.axvline(result.push_time, color=PERTURBED_COLOR, linestyle="--", label="push")
-        if result.recovery_time is not None:
-            distance.axvspan(
+        ax.axvline(result.push_time, color=PERTURBED_COLOR, linestyle="--", label="push")
+        if recovery and result.recovery_time is not None:
+            ax.axvspan(
                 result.push_time,
                 result.push_time + result.recovery_time,
                 color=PERTURBED_COLOR,
                 alpha=0.12,
                 label="recovery",
             )
-    distance.set_xlabel("time (s)")
-    distance.set_ylabel("distance to target (m)")
-    distance.set_title("distance to the target")
-    distance.legend(frameon=False, fontsize="small")
-    _despine(distance)
-    fig.suptitle(_headline(result), fontsize="medium")
-    return _save(fig, path)
+    ax.set_xlabel("time (s)")
+    ax.legend(frameon=False, fontsize="small")
+    _despine(ax)
 
 
 def _headline(result: SimResult) -> str:
@@ -176,6 +197,8 @@ def _headline(result: SimResult) -> str:
         else f"stopped at {result.times[-1]:.1f} s"
     )
     text = f"{robot}: {outcome}, final error {1000 * result.final_error:.1f} mm"
+    if result.drives_orientation:
+        text += f" and {result.final_orientation_error:.3f} rad"
     if result.recovery_time is not None:
         text += f", recovered {result.recovery_time:.2f} s after the push"
     return text

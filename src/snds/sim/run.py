@@ -1,33 +1,47 @@
 r"""The simulate loop: a policy drives a simulated arm's end effector to its target.
 
-At a fixed control rate the loop measures the end effector, maps its position into the
-task's coordinates (:class:`Placement`), asks the policy for a velocity, maps it back into
-the world and hands it, with an orientation hold, to the task-space controller
-(:func:`~snds.sim.arm.joint_velocity`), whose joint targets the motors track while the
-physics runs. A push teleports the end effector mid-motion; the run stops when the end
-effector is within a tolerance of the target (after any push) or at a time limit.
+At a fixed control rate the loop measures the end effector, asks a :class:`Commander` for
+the twist (linear and angular velocity, world frame) the policy commands at that pose, and
+hands it to the task-space controller (:func:`~snds.sim.arm.joint_velocity`), whose joint
+targets the motors track while the physics runs. A push teleports the end effector
+mid-motion; the run stops when the end effector has arrived at the target (after any push)
+or at a time limit.
 
-The state the policy sees is built in one place (:meth:`Placement.to_task`), so an SE(3)
-policy (position and rotation vector) plugs in there and in :meth:`Placement.to_world`:
-today the policies are position-only and the orientation is held at the start's.
+The commander is the only part that knows what kind of policy drives the arm, and is chosen
+once from the policy's type (:func:`make_commander`):
+
+- :class:`PositionCommander`, a 2-D or 3-D position policy: the task's coordinates lie in the
+  world by a :class:`Placement`; the policy drives the position, the controller holds the
+  orientation at the start's (and a 2-D task on its plane). It has arrived within
+  :attr:`SimConfig.tolerance` of the target.
+- :class:`PoseCommander`, an SE(3) :class:`~snds.se3.PosePolicy`: positions are placed as a
+  3-D task's, orientations by one fixed rotation (:class:`PosePlacement`) that takes the
+  task's target orientation to the arm's orientation at its rest pose, which the arm can
+  reach; the policy drives both. It has arrived within the position tolerance and within
+  :attr:`SimConfig.angle_tolerance` of the target orientation.
 """
 
 from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 import torch
+from scipy.spatial.transform import Rotation
 
 from snds.policy import Policy, float64_copy
-from snds.sim.arm import Arm, joint_velocity, orientation_error
+from snds.se3 import PosePolicy
+from snds.sim.arm import Arm, EndEffector, joint_velocity, orientation_error
 from snds.sim.robots import Robot, SimulationError, get_robot
 
 
 @dataclass(frozen=True, kw_only=True)
 class Push:
     """A displacement of the end effector at one control step.
+
+    The orientation is kept: a push moves the tool, it does not turn it.
 
     Attributes:
         step: The control step at which it happens (0-based).
@@ -49,14 +63,17 @@ class SimConfig:
 
     Attributes:
         robot: A key of :data:`~snds.sim.robots.ROBOTS`.
-        scale: Metres per user unit of the task (None: fit the demonstrations' extent into
-            the robot's reach).
+        scale: Metres per user unit of the task's positions (None: fit the demonstrations'
+            extent into the robot's reach).
         control_rate: Control loop frequency, Hz.
         substeps: Physics steps per control step.
         time_limit: Longest simulated time, seconds.
         tolerance: Distance to the target (metres) at which the run stops.
+        angle_tolerance: Angle to the target orientation (radians) within which a pose
+            policy's run stops (with the distance within ``tolerance``); a position policy
+            does not drive the orientation, and its run stops on the distance alone.
         push: An optional push.
-        hold_gain: Gain (1/s) of the holds on what the policy does not drive: the
+        hold_gain: Gain (1/s) of the holds on what a position policy does not drive: the
             orientation, and for a 2-D task the distance off the work plane.
         gravity: Whether gravity acts on the arm.
     """
@@ -67,6 +84,7 @@ class SimConfig:
     substeps: int = 4
     time_limit: float = 30.0
     tolerance: float = 0.001
+    angle_tolerance: float = 0.02
     push: Push | None = None
     hold_gain: float = 5.0
     gravity: bool = True
@@ -78,6 +96,10 @@ class SimConfig:
             raise SimulationError("control rate, substeps and time limit must be positive")
         if not self.tolerance > 0:
             raise SimulationError(f"the tolerance must be positive, got {self.tolerance}")
+        if not self.angle_tolerance > 0:
+            raise SimulationError(
+                f"the angle tolerance must be positive, got {self.angle_tolerance}"
+            )
 
     def to_dict(self) -> dict:
         """JSON-ready form."""
@@ -137,22 +159,254 @@ class Placement:
 
 
 @dataclass(frozen=True)
+class PosePlacement:
+    r"""Where a pose task lies in the world: positions as a 3-D task's, orientations turned by
+    one fixed rotation, :math:`q_\text{world} = R \, q_\text{task}`.
+
+    Turning every orientation by the same :math:`R` (on the left, in the world frame) maps
+    the task's flow on SO(3) onto the world's exactly: with :math:`\dot R_t = [\omega]_\times
+    R_t`, the world's angular velocity is :math:`R \omega`. The positions keep the task's axes
+    (:meth:`Placement.for_task` of a 3-D task), so a motion drawn on a horizontal plane stays
+    horizontal whatever :math:`R` is.
+
+    Attributes:
+        positions: The placement of the positions (3-D).
+        rotation: :math:`R`, quaternion (x, y, z, w), shape (4,).
+    """
+
+    positions: Placement
+    rotation: np.ndarray
+
+    @classmethod
+    def for_task(
+        cls,
+        robot: Robot,
+        target_position: np.ndarray,
+        target_orientation: np.ndarray,
+        scale: float,
+        rest_orientation: np.ndarray,
+    ) -> PosePlacement:
+        r"""The task's target at the robot's work point, its target orientation at the arm's
+        orientation at rest (:math:`R = q_\text{rest} \, q^{*-1}`): a goal the arm reaches."""
+        rotation = (
+            Rotation.from_quat(rest_orientation) * Rotation.from_quat(target_orientation).inv()
+        )
+        return cls(Placement.for_task(robot, target_position, scale), rotation.as_quat())
+
+    def to_task(
+        self, position: np.ndarray, orientation: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The task pose (user units (3,), quaternion (4,)) of a world pose ((3,), (4,))."""
+        turn = Rotation.from_quat(self.rotation).inv() * Rotation.from_quat(orientation)
+        return self.positions.to_task(position), turn.as_quat()
+
+    def to_world(
+        self, position: np.ndarray, orientation: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The world pose (metres (3,), quaternion (4,)) of a task pose ((3,), (4,))."""
+        turn = Rotation.from_quat(self.rotation) * Rotation.from_quat(orientation)
+        return self.positions.to_world(position), turn.as_quat()
+
+    def twist_to_world(self, twist: np.ndarray) -> np.ndarray:
+        """World twist (linear m/s, angular rad/s), shape (6,), of a task twist (6,)."""
+        angular = Rotation.from_quat(self.rotation).apply(twist[3:])
+        return np.concatenate([self.positions.velocity_to_world(twist[:3]), angular])
+
+
+class Commander(Protocol):
+    """What a policy commands at a measured end-effector pose: the one part of the loop that
+    knows the kind of policy (see the module's docstring).
+
+    Attributes:
+        placement: Where the task's positions lie in the world.
+        rotation: The fixed rotation of a pose task's orientations, quaternion (4,); None if
+            the policy does not drive the orientation.
+        goal_orientation: The world orientation the run aims for, quaternion (4,).
+    """
+
+    placement: Placement
+    rotation: np.ndarray | None
+    goal_orientation: np.ndarray
+
+    def start_pose(self, start: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The world pose (position (3,), quaternion (4,)) of a start state in user units."""
+        ...
+
+    def twist(self, pose: EndEffector) -> np.ndarray:
+        """The world twist (linear, angular), shape (6,), to command at a measured pose."""
+        ...
+
+    def arrived(self, distance: float, angle: float) -> bool:
+        """Whether a pose at ``distance`` metres and ``angle`` radians from the target is there."""
+        ...
+
+
+class PositionCommander:
+    """A 2-D or 3-D position policy: it drives the position; the orientation is held.
+
+    Arguments:
+        policy: The position policy (float64).
+        placement: Where the task lies.
+        hold: The orientation held, quaternion (4,).
+        config: The run's settings (tolerance, hold gain).
+    """
+
+    rotation = None
+
+    def __init__(
+        self, policy: Policy, placement: Placement, hold: np.ndarray, config: SimConfig
+    ) -> None:
+        self.policy = policy
+        self.placement = placement
+        self.goal_orientation = hold
+        self.config = config
+
+    @classmethod
+    def build(
+        cls, policy: Policy, robot: Robot, rest_orientation: np.ndarray, config: SimConfig
+    ) -> PositionCommander:
+        """The commander of a run on ``robot``, holding the rest orientation."""
+        scale = config.scale if config.scale is not None else default_scale(robot, policy)
+        target = np.asarray(policy.normalization.center, dtype=float)
+        return cls(policy, Placement.for_task(robot, target, scale), rest_orientation, config)
+
+    def start_pose(self, start: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The world pose of a start state (n,): its position, the held orientation."""
+        start = np.asarray(start, dtype=float)
+        if start.shape != self.placement.target.shape:
+            raise SimulationError(
+                f"the start has shape {start.shape}, the model's states "
+                f"{self.placement.target.shape}"
+            )
+        return self.placement.to_world(start), self.goal_orientation
+
+    def twist(self, pose: EndEffector) -> np.ndarray:
+        """The policy's velocity at the measured position; the holds on the rest."""
+        state = self.placement.to_task(pose.position)
+        with torch.no_grad():
+            velocity = self.policy(torch.as_tensor(state)[None])[0].numpy()
+        gain = self.config.hold_gain
+        return np.concatenate(
+            [
+                self.placement.velocity_to_world(velocity)
+                - gain * self.placement.off_task(pose.position),
+                gain * orientation_error(pose.orientation, self.goal_orientation),
+            ]
+        )
+
+    def arrived(self, distance: float, angle: float) -> bool:
+        """Within the position tolerance: the held orientation is not the policy's to reach."""
+        return distance <= self.config.tolerance
+
+
+class PoseCommander:
+    """An SE(3) pose policy: it drives position and orientation.
+
+    Arguments:
+        policy: The pose policy (float64).
+        placement: Where the task lies.
+        config: The run's settings (tolerances).
+    """
+
+    def __init__(self, policy: PosePolicy, placement: PosePlacement, config: SimConfig) -> None:
+        self.policy = policy
+        self.pose_placement = placement
+        self.placement = placement.positions
+        self.rotation = placement.rotation
+        target = np.asarray(policy.config.target_orientation, dtype=float)
+        self.goal_orientation = placement.to_world(self.placement.target, target)[1]
+        self.config = config
+
+    @classmethod
+    def build(
+        cls, policy: PosePolicy, robot: Robot, rest_orientation: np.ndarray, config: SimConfig
+    ) -> PoseCommander:
+        """The commander of a run on ``robot``, the target orientation at the rest one."""
+        # The pose policy's normalisation is of its scaled 6-D state; the positions' extent
+        # in user units is its position scale L_p.
+        extent = float(policy.config.position_scale)
+        scale = config.scale if config.scale is not None else robot.reach / extent
+        placement = PosePlacement.for_task(
+            robot,
+            np.asarray(policy.config.target_position, dtype=float),
+            np.asarray(policy.config.target_orientation, dtype=float),
+            scale,
+            rest_orientation,
+        )
+        return cls(policy, placement, config)
+
+    def start_pose(self, start: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The world pose of a start pose (7,): position (3) and unit quaternion (4)."""
+        start = np.asarray(start, dtype=float)
+        if start.shape != (7,):
+            raise SimulationError(
+                f"a pose model starts from a position and a quaternion (7 numbers), got "
+                f"shape {start.shape}"
+            )
+        norm = np.linalg.norm(start[3:])
+        if not abs(norm - 1.0) <= 1e-6:
+            raise SimulationError(f"the start orientation is not a unit quaternion (norm {norm})")
+        return self.pose_placement.to_world(start[:3], start[3:] / norm)
+
+    def twist(self, pose: EndEffector) -> np.ndarray:
+        """The policy's linear and angular velocity at the measured pose, in the world."""
+        position, orientation = self.pose_placement.to_task(pose.position, pose.orientation)
+        with torch.no_grad():
+            twist = self.policy.twist(
+                torch.as_tensor(position)[None], torch.as_tensor(orientation)[None]
+            )[0].numpy()
+        return self.pose_placement.twist_to_world(twist)
+
+    def arrived(self, distance: float, angle: float) -> bool:
+        """Within both tolerances."""
+        return distance <= self.config.tolerance and angle <= self.config.angle_tolerance
+
+
+def make_commander(
+    policy: Policy, robot: Robot, rest_orientation: np.ndarray, config: SimConfig
+) -> Commander:
+    """The commander of a policy, chosen from its type: poses or positions.
+
+    Arguments:
+        policy: The policy (float64, eval mode).
+        robot: The arm.
+        rest_orientation: The end effector's orientation at the rest pose, quaternion (4,).
+        config: The run's settings.
+    """
+    if isinstance(policy, PosePolicy):
+        return PoseCommander.build(policy, robot, rest_orientation, config)
+    return PositionCommander.build(policy, robot, rest_orientation, config)
+
+
+@dataclass(frozen=True)
 class SimResult:
     """What a simulated run did.
 
     Attributes:
         config: The settings.
-        placement: Where the task was in the world.
+        placement: Where the task's positions were in the world.
+        rotation: For a pose policy, the fixed rotation of the task's orientations into the
+            world, quaternion (4,); None for a position policy (orientation held).
+        goal_orientation: The world orientation aimed for, quaternion (4,): the image of a
+            pose task's target orientation, or the orientation a position policy's run held.
         times: Time of each control step, seconds, shape (T,).
         positions: Measured end-effector positions, metres, shape (T, 3).
-        states: The same in the task's user units, shape (T, n).
+        orientations: Measured end-effector orientations, unit quaternions (x, y, z, w),
+            shape (T, 4).
+        states: The positions in the task's user units, shape (T, n).
+        orientation_errors: Angle from the measured orientation to the goal orientation,
+            radians, shape (T,).
         joints: Controlled joint positions, radians, shape (T, k).
         joint_lower: Lower joint limits, shape (k,).
         joint_upper: Upper joint limits, shape (k,).
         start_error: Distance from the end effector to the requested start when the run
             began, metres (more than a millimetre: the start was out of reach).
-        reached: Whether the run stopped within the tolerance of the target.
+        start_orientation_error: Angle from the end effector to the requested start
+            orientation when the run began, radians.
+        reached: Whether the run stopped at the target (within the tolerance, and for a pose
+            policy within the angle tolerance).
         final_error: Distance from the end effector to the target at the end, metres.
+        final_orientation_error: Angle to the goal orientation at the end, radians.
         push_time: When the push happened, seconds (None without one).
         push_offset: The end effector's actual displacement by the push, metres (3,).
         recovery_time: Seconds from the push until the end effector is again as close to
@@ -162,40 +416,59 @@ class SimResult:
 
     config: SimConfig
     placement: Placement
+    rotation: np.ndarray | None
+    goal_orientation: np.ndarray
     times: np.ndarray
     positions: np.ndarray
+    orientations: np.ndarray
     states: np.ndarray
+    orientation_errors: np.ndarray
     joints: np.ndarray
     joint_lower: np.ndarray
     joint_upper: np.ndarray
     start_error: float
+    start_orientation_error: float
     reached: bool
     final_error: float
+    final_orientation_error: float
     push_time: float | None
     push_offset: np.ndarray | None
     recovery_time: float | None
+
+    @property
+    def drives_orientation(self) -> bool:
+        """Whether the policy drove the orientation (a pose policy), or it was held."""
+        return self.rotation is not None
 
     def to_dict(self) -> dict:
         """JSON-ready form: settings, then the paths and the summary numbers."""
         arrays = {
             "time": self.times,
             "end_effector_path": self.positions,
+            "orientation_path": self.orientations,
+            "orientation_error_path_rad": self.orientation_errors,
             "task_path": self.states,
             "joint_path": self.joints,
             "joint_lower": self.joint_lower,
             "joint_upper": self.joint_upper,
         }
+        placement = {
+            "origin": self.placement.origin.tolist(),
+            "axes": self.placement.axes.tolist(),
+            "scale_m_per_unit": self.placement.scale,
+            "target": self.placement.target.tolist(),
+            "rotation": None if self.rotation is None else self.rotation.tolist(),
+        }
         return {
             "settings": self.config.to_dict(),
-            "placement": {
-                "origin": self.placement.origin.tolist(),
-                "axes": self.placement.axes.tolist(),
-                "scale_m_per_unit": self.placement.scale,
-                "target": self.placement.target.tolist(),
-            },
+            "placement": placement,
+            "drives_orientation": self.drives_orientation,
+            "goal_orientation": self.goal_orientation.tolist(),
             "start_error_m": self.start_error,
+            "start_orientation_error_rad": self.start_orientation_error,
             "reached": self.reached,
             "final_error_m": self.final_error,
+            "final_orientation_error_rad": self.final_orientation_error,
             "duration_s": float(self.times[-1]),
             "push_time_s": self.push_time,
             "push_offset_m": None if self.push_offset is None else self.push_offset.tolist(),
@@ -205,7 +478,7 @@ class SimResult:
 
 
 def default_scale(robot: Robot, policy: Policy) -> float:
-    """Metres per user unit that fit the demonstrations' extent into the robot's reach."""
+    """Metres per user unit that fit a position policy's demonstrations into the robot's reach."""
     return robot.reach / float(policy.normalization.length)
 
 
@@ -213,8 +486,10 @@ def simulate(policy: Policy, start: np.ndarray, config: SimConfig) -> SimResult:
     """Runs a policy on a simulated arm from a start state to its target.
 
     Arguments:
-        policy: The policy (user units in and out; positions 2-D or 3-D).
-        start: The start state in user units, shape (n,).
+        policy: The policy (user units in and out): a 2-D or 3-D position policy, or an
+            SE(3) :class:`~snds.se3.PosePolicy`.
+        start: The start in user units: a position policy's state, shape (n,); a pose
+            policy's position and unit quaternion (x, y, z, w), shape (7,).
         config: The settings.
 
     Returns:
@@ -222,74 +497,75 @@ def simulate(policy: Policy, start: np.ndarray, config: SimConfig) -> SimResult:
     """
     robot = get_robot(config.robot)
     policy = float64_copy(policy)
-    target = np.asarray(policy.normalization.center, dtype=float)
-    start = np.asarray(start, dtype=float)
-    if start.shape != target.shape:
-        raise SimulationError(
-            f"the start has shape {start.shape}, the model's states {target.shape}"
-        )
-    scale = config.scale if config.scale is not None else default_scale(robot, policy)
-    placement = Placement.for_task(robot, target, scale)
     dt = 1.0 / config.control_rate
     steps = int(np.ceil(config.time_limit * config.control_rate))
     with Arm(robot, physics_dt=dt / config.substeps, gravity=config.gravity) as arm:
         arm.reset(arm.rest)
-        hold = arm.end_effector().orientation
-        start_error = arm.move_to(placement.to_world(start), hold)
+        commander = make_commander(policy, robot, arm.end_effector().orientation, config)
+        placement, goal = commander.placement, commander.goal_orientation
+        start_position, start_orientation = commander.start_pose(start)
+        start_error = arm.move_to(start_position, start_orientation)
+        start_angle = _angle(arm.end_effector().orientation, start_orientation)
         # The motors track an integrated reference, not "measured + one step": a reference
         # ahead of a sagging arm keeps pushing, so gravity leaves no steady-state offset.
         reference = arm.joint_positions()
-        times, positions, joints = [], [], []
+        times, positions, orientations, joints = [], [], [], []
         push_time = push_offset = None
         for step in range(steps + 1):
             if config.push is not None and step == config.push.step:
-                before = arm.end_effector().position
-                arm.move_to(before + np.asarray(config.push.displacement), hold)
-                push_offset = arm.end_effector().position - before
+                before = arm.end_effector()
+                arm.move_to(
+                    before.position + np.asarray(config.push.displacement), before.orientation
+                )
+                push_offset = arm.end_effector().position - before.position
                 push_time = step * dt
                 reference = arm.joint_positions()
             pose = arm.end_effector()
             q = arm.joint_positions()
             times.append(step * dt)
             positions.append(pose.position)
+            orientations.append(pose.orientation)
             joints.append(q)
             pushed = config.push is None or step >= config.push.step
-            arrived = np.linalg.norm(pose.position - placement.origin) <= config.tolerance
+            distance = float(np.linalg.norm(pose.position - placement.origin))
+            arrived = commander.arrived(distance, _angle(pose.orientation, goal))
             if (arrived and pushed) or step == steps:
                 break
-            state = placement.to_task(pose.position)
-            with torch.no_grad():
-                velocity = policy(torch.as_tensor(state)[None])[0].numpy()
-            twist = np.concatenate(
-                [
-                    placement.velocity_to_world(velocity)
-                    - config.hold_gain * placement.off_task(pose.position),
-                    config.hold_gain * orientation_error(pose.orientation, hold),
-                ]
-            )
-            qdot = _controller(arm, twist, q)
+            qdot = _controller(arm, commander.twist(pose), q)
             reference = np.clip(reference + dt * qdot, arm.lower, arm.upper)
             arm.command(reference, qdot)
             arm.step(config.substeps)
         positions_ = np.array(positions)
-        states = np.array([placement.to_task(p) for p in positions_])
-        final_error = float(np.linalg.norm(positions_[-1] - placement.origin))
+        orientations_ = np.array(orientations)
+        angles = np.array([_angle(o, goal) for o in orientations_])
+        distance = float(np.linalg.norm(positions_[-1] - placement.origin))
         return SimResult(
             config=config,
             placement=placement,
+            rotation=commander.rotation,
+            goal_orientation=np.asarray(goal, dtype=float),
             times=np.array(times),
             positions=positions_,
-            states=states,
+            orientations=orientations_,
+            states=np.array([placement.to_task(p) for p in positions_]),
+            orientation_errors=angles,
             joints=np.array(joints),
             joint_lower=arm.lower.copy(),
             joint_upper=arm.upper.copy(),
             start_error=float(start_error),
-            reached=final_error <= config.tolerance,
-            final_error=final_error,
+            start_orientation_error=start_angle,
+            reached=commander.arrived(distance, float(angles[-1])),
+            final_error=distance,
+            final_orientation_error=float(angles[-1]),
             push_time=push_time,
             push_offset=push_offset,
             recovery_time=_recovery_time(positions_, placement.origin, np.array(times), push_time),
         )
+
+
+def _angle(current: np.ndarray, wanted: np.ndarray) -> float:
+    """Angle (radians, [0, pi]) of the rotation from one orientation to another."""
+    return float(np.linalg.norm(orientation_error(current, wanted)))
 
 
 def _controller(arm: Arm, twist: np.ndarray, q: np.ndarray) -> np.ndarray:
