@@ -16,8 +16,10 @@ import torch
 from snds import export
 from snds.cli import main
 from snds.data import Demonstration, Demonstrations
+from snds.data.poses import with_synthetic_orientations
 from snds.io import save_model
 from snds.policy import PolicyConfig
+from snds.se3 import make_pose_policy
 
 from conftest import SMALL, make_policy, spiral_demos
 
@@ -227,3 +229,140 @@ def test_control_loop_example_drives_a_point_to_the_target(onnx64, capsys) -> No
     assert summary["ticks"] == 8000
     assert summary["final_distance"] < 1e-3 * summary["start_distance"]
     assert "missed deadlines" in capsys.readouterr().out
+
+
+# --- SE(3) pose policies: the exported graph maps poses to twists -------------------------
+
+
+@pytest.fixture(scope="module")
+def pose_policy():
+    """An untrained pose policy whose target pose is off the origin and not the identity."""
+    base = shifted_spiral()
+    demos = with_synthetic_orientations(
+        Demonstrations(base.demos, base.target, "spiral"), target_orientation=(0.0, 0.6, 0.0, 0.8)
+    )
+    policy, _ = make_pose_policy(demos, config=SMALL, seed=3)
+    return policy.eval()
+
+
+@pytest.fixture(scope="module")
+def pose_onnx64(pose_policy, tmp_path_factory) -> Path:
+    return export.export_onnx(
+        pose_policy, tmp_path_factory.mktemp("pose") / "pose.onnx", dtype=torch.float64
+    )
+
+
+def test_random_poses_span_so3_and_reach_far(pose_policy) -> None:
+    x = export.random_states(pose_policy, 10_000, seed=0)
+    config = pose_policy.config
+    offset = np.abs(x[:, :3] - config.target_position).max(axis=1) / config.position_scale
+    angles = 2 * np.arccos(np.clip(np.abs(x[:, 3:] @ config.target_orientation), 0, 1))
+    assert x.shape == (10_000, 7)
+    np.testing.assert_allclose(np.linalg.norm(x[:, 3:], axis=1), 1.0, atol=1e-12)
+    assert offset.min() < 0.2 and offset.max() > 900
+    assert (offset <= 1).mean() > 0.15  # a fair share near the data
+    # uniform on SO(3): angles from the target up to pi, mean pi/2 + 2/pi (Haar measure)
+    assert angles.max() > np.pi - 0.05
+    assert angles.mean() == pytest.approx(np.pi / 2 + 2 / np.pi, abs=0.03)
+
+
+def test_float64_pose_onnx_equals_the_library_twist(pose_policy, pose_onnx64) -> None:
+    # GIVEN the float64 ONNX export of a pose policy, run by onnxruntime
+    run = export.load_onnx(pose_onnx64)
+    x = export.random_states(pose_policy, 10_000, seed=1)
+    # WHEN it and the library's twist see the same 10,000 random poses
+    exported = run(x)
+    with torch.no_grad():
+        library = (
+            copy.deepcopy(pose_policy)
+            .double()
+            .twist(torch.as_tensor(x[:, :3]), torch.as_tensor(x[:, 3:]))
+        )
+    # THEN the twists agree to rounding, linear and angular blocks alike
+    assert exported.shape == (10_000, 6)
+    np.testing.assert_allclose(exported, library.numpy(), rtol=1e-10, atol=1e-9)
+    check = export.verify(pose_onnx64, pose_policy, samples=10_000)
+    assert check.passed and check.max_error <= 1e-9
+
+
+def test_pose_onnx_is_blind_to_the_quaternion_sign(pose_policy, pose_onnx64) -> None:
+    # the graph takes the log map itself: q and -q are one orientation, one twist
+    run = export.load_onnx(pose_onnx64)
+    x = export.random_states(pose_policy, 2_000, seed=2)
+    flipped = np.concatenate([x[:, :3], -x[:, 3:]], axis=1)
+    np.testing.assert_allclose(run(flipped), run(x), rtol=1e-10, atol=1e-10)
+
+
+def test_pose_onnx_metadata_says_pose_in_twist_out(pose_policy, pose_onnx64) -> None:
+    import onnx
+
+    meta = {p.key: p.value for p in onnx.load(str(pose_onnx64)).metadata_props}
+    target = json.loads(meta["snds.target"])
+    np.testing.assert_allclose(target[:3], [100.0, -50.0, 0.0])
+    np.testing.assert_allclose(target[3:], [0.0, 0.6, 0.0, 0.8])
+    assert meta["snds.input"].startswith("pose") and meta["snds.output"].startswith("twist")
+    assert float(meta["snds.extent"]) == pytest.approx(pose_policy.config.position_scale)
+
+
+def test_float32_pose_onnx_passes_the_check(pose_policy, tmp_path: Path) -> None:
+    path = export.export_onnx(pose_policy, tmp_path / "pose32.onnx", dtype=torch.float32)
+    check = export.verify(path, pose_policy, samples=10_000)
+    assert check.dtype == "float32" and check.passed
+    assert check.max_error <= export.TOLERANCE[torch.float32]
+
+
+def test_pose_pt2_round_trip_is_exact(pose_policy, tmp_path: Path) -> None:
+    path = export.export_pt2(pose_policy, tmp_path / "pose.pt2", dtype=torch.float64)
+    assert export.pickled_entries(path) == []
+    check = export.verify(path, pose_policy, samples=2_000)
+    assert check.passed and check.max_error <= 1e-12
+
+
+def test_verify_catches_a_pose_model_with_other_weights(pose_policy, pose_onnx64) -> None:
+    other = copy.deepcopy(pose_policy)
+    with torch.no_grad():
+        for p in other.nominal_net.parameters():
+            p.add_(0.1 * torch.randn_like(p))
+    check = export.verify(pose_onnx64, other, samples=500)
+    assert not check.passed and check.max_error > 1e-3
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_onnx_atan2_equals_torch_in_every_quadrant(tmp_path: Path, dtype) -> None:
+    # GIVEN atan2 through the export's translation (onnxruntime has no float64 Atan)
+    class Atan2(torch.nn.Module):
+        def forward(self, x: torch.Tensor) -> torch.Tensor:
+            return torch.atan2(x[:, 0], x[:, 1])
+
+    rng = np.random.default_rng(0)
+    special = [0.0, 1.0, -1.0, 1e-30, -1e-30, 1e30, -1e30]
+    pairs = np.array([(a, b) for a in special for b in special])
+    scales = 10.0 ** rng.uniform(-20, 20, size=(2_000, 1))
+    x = np.concatenate([pairs, scales * rng.normal(size=(2_000, 2))]).astype(export._NUMPY[dtype])
+    program = torch.export.export(
+        Atan2(), (torch.as_tensor(x[:4]),), dynamic_shapes={"x": {0: torch.export.Dim("b")}}
+    )
+    with export._quiet_exporter():
+        model = torch.onnx.export(
+            program,
+            dynamo=True,
+            custom_translation_table={torch.ops.aten.atan2.default: export._atan2_onnx},
+        ).model_proto
+    import onnx
+
+    onnx.save(model, str(tmp_path / "atan2.onnx"))
+    # WHEN it runs on pairs with zeros, signs, and magnitudes from 1e-30 to 1e30
+    got = export.load_onnx(tmp_path / "atan2.onnx")(x)
+    # THEN it is torch's atan2 to the precision's rounding
+    expected = torch.atan2(torch.as_tensor(x[:, 0]), torch.as_tensor(x[:, 1])).numpy()
+    ulp = 4e-16 if dtype == torch.float64 else 5e-7
+    np.testing.assert_allclose(got, expected, rtol=0, atol=ulp * np.pi)
+
+
+def test_cli_export_of_a_pose_model(pose_policy, tmp_path: Path, capsys) -> None:
+    save_model(pose_policy, tmp_path / "pose")
+    code = main(["export", str(tmp_path / "pose"), "--format", "pt2", "--samples", "1000"])
+    assert code == 0
+    check = json.loads((tmp_path / "pose" / "policy.pt2.check.json").read_text())
+    assert check["passed"] and check["samples"] == 1000
+    assert "poses (B, 7" in capsys.readouterr().out

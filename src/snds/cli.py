@@ -276,7 +276,9 @@ def _build_parser() -> argparse.ArgumentParser:
     sim.set_defaults(run=_simulate)
 
     export = commands.add_parser(
-        "export", help="export a model for a real-time controller (ONNX or torch.export)"
+        "export",
+        help="export a model for a real-time controller (ONNX or torch.export); a pose "
+        "model's file maps a pose (7 numbers) to a twist (6)",
     )
     export.add_argument("model", type=Path, help="model directory")
     export.add_argument("--format", choices=["onnx", "pt2"], default="onnx")
@@ -606,8 +608,9 @@ def _export(args: argparse.Namespace) -> int:
         )
     if not args.quiet:
         print(
-            f"{path}: {check.samples} random states, largest difference from the library "
-            f"{check.max_error:.2e} (relative; {check.max_abs_diff:.2e} absolute)"
+            f"{path}: {export.signature(policy).description}; {check.samples} random "
+            f"states, largest difference from the library {check.max_error:.2e} (relative; "
+            f"{check.max_abs_diff:.2e} absolute)"
         )
     return 0
 

@@ -2,15 +2,23 @@ r"""Export of a policy for a real-time controller, and the check that it compute
 
 The exported graph is the policy's own ``forward``: user positions in, user velocities out,
 with the Lyapunov gradient written analytically (:meth:`snds.nn.Lyapunov.value_and_grad`),
-so no autograd is needed or traced. Two formats:
+so no autograd is needed or traced. For an SE(3) :class:`~snds.se3.PosePolicy` it is the
+pose-level map :meth:`~snds.se3.PosePolicy.twist`: a pose (x, y, z, qx, qy, qz, qw; user
+units and a unit quaternion) in, the twist (linear velocity in user units per second, then
+the world-frame angular velocity in rad/s) out, with the log map of the orientation and the
+left Jacobian of SO(3) in the graph, so a controller needs no quaternion maths of its own.
+What each kind takes and returns, and how its check samples it, is its :class:`Signature`.
+Two formats:
 
 - ONNX (:func:`export_onnx`), run by onnxruntime from any language; the file carries the
-  target, the state dimension and the speed scale in its metadata.
+  target, the state dimension, the speed scale and what its input and output are in its
+  metadata.
 - ``torch.export`` (:func:`export_pt2`), a ``.pt2`` archive: the graph as JSON and the
   weights as raw bytes (no pickle for plain tensors), loaded by :func:`torch.export.load`.
 
 :func:`verify` runs an exported file on random states, from near the target to 1000x the
-demonstrations' extent, and compares it with the library evaluated in the same precision.
+demonstrations' extent (for poses: with orientations uniform on SO(3)), and compares it with
+the library evaluated in the same precision.
 """
 
 from __future__ import annotations
@@ -31,6 +39,7 @@ import torch
 from snds.errors import SNDSError
 from snds.io import atomic_write
 from snds.policy import Policy, StablePolicy, project
+from snds.se3 import PosePolicy
 
 #: Largest accepted difference from the library evaluated in the export's precision,
 #: relative to max(|velocity|, top speed) of each state. float64 graphs agree to rounding
@@ -113,9 +122,148 @@ def _quiet_exporter() -> Iterator[None]:
         logger.setLevel(level)
 
 
+class _PoseExported(torch.nn.Module):
+    """The traced module of a pose policy: poses (B, 7) to twists (B, 6), the library's own
+    :meth:`~snds.se3.PosePolicy.twist`, in a fixed precision and in eval mode."""
+
+    def __init__(self, policy: PosePolicy, dtype: torch.dtype) -> None:
+        super().__init__()
+        self.policy = _copy(policy, dtype)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.policy.twist(x[..., :3], x[..., 3:])
+
+
+class Signature:
+    """What the exported graph of a position policy computes: positions (B, n) to velocities
+    (B, n), user units; and the random inputs that check it.
+
+    Arguments:
+        policy: The policy.
+    """
+
+    def __init__(self, policy: Policy) -> None:
+        self.policy = policy
+        #: Width of an input row.
+        self.inputs = policy.dim
+        #: What the graph maps to what, in words.
+        self.description = (
+            f"positions (B, {policy.dim}) -> velocities (B, {policy.dim}), user units"
+        )
+
+    def module(self, dtype: torch.dtype) -> torch.nn.Module:
+        """The module to trace, in ``dtype``."""
+        return _Exported(self.policy, dtype)
+
+    def library(self, x: torch.Tensor) -> torch.Tensor:
+        """What the library computes at inputs (B, inputs), in their dtype."""
+        return _copy(self.policy, x.dtype)(x)
+
+    def random_inputs(self, count: int, rng: np.random.Generator) -> np.ndarray:
+        """Positions in boxes of :data:`STATE_RADII` extents around the target, (count, n)."""
+        center = np.asarray(self.policy.normalization.center, dtype=float)
+        return center + self.policy.normalization.length * _spread(count, self.inputs, rng)
+
+    def extents(self, x: np.ndarray) -> np.ndarray:
+        """Each input's largest coordinate offset from the target, in extents, shape (B,)."""
+        offset = np.abs(x - self.policy.normalization.center).max(axis=-1)
+        return offset / self.policy.normalization.length
+
+    def output_scale(self) -> np.ndarray:
+        """Divisors (outputs,) of the outputs before they are compared with the top speed."""
+        return np.ones(self.policy.dim)
+
+    def metadata(self) -> dict[str, str]:
+        """The ONNX file's metadata of this kind."""
+        policy = self.policy
+        return {
+            "snds.dim": str(policy.dim),
+            "snds.input": f"position ({policy.dim} numbers, user units)",
+            "snds.output": f"velocity ({policy.dim} numbers, user units per second)",
+            "snds.target": json.dumps([float(c) for c in policy.normalization.center]),
+            "snds.extent": repr(float(policy.normalization.length)),
+            "snds.top_speed": repr(_top_speed(policy)),
+        }
+
+
+class PoseSignature(Signature):
+    r"""What the exported graph of a pose policy computes: poses (B, 7) to twists (B, 6)
+    (:meth:`~snds.se3.PosePolicy.twist`); and the random poses that check it.
+
+    The twist's linear and angular blocks are in different units; the check compares them in
+    the policy's scaled units (divided by :math:`L_p` and :math:`L_r`), where the top speed
+    of the scaled state is the floor, as for positions.
+    """
+
+    policy: PosePolicy
+
+    def __init__(self, policy: PosePolicy) -> None:
+        super().__init__(policy)
+        self.inputs = 7
+        self.description = (
+            "poses (B, 7: x, y, z, qx, qy, qz, qw) -> twists (B, 6: linear velocity in user "
+            "units/s, angular velocity in rad/s, world frame)"
+        )
+
+    def module(self, dtype: torch.dtype) -> torch.nn.Module:
+        return _PoseExported(self.policy, dtype)
+
+    def library(self, x: torch.Tensor) -> torch.Tensor:
+        return _copy(self.policy, x.dtype).twist(x[..., :3], x[..., 3:])
+
+    def random_inputs(self, count: int, rng: np.random.Generator) -> np.ndarray:
+        """Positions in boxes of :data:`STATE_RADII` position extents :math:`L_p` around the
+        target, orientations uniform on SO(3) (normalised 4-D Gaussians), (count, 7)."""
+        config = self.policy.config
+        positions = np.asarray(config.target_position) + config.position_scale * _spread(
+            count, 3, rng
+        )
+        quats = rng.standard_normal((count, 4))
+        return np.concatenate([positions, quats / np.linalg.norm(quats, axis=1, keepdims=True)], 1)
+
+    def extents(self, x: np.ndarray) -> np.ndarray:
+        config = self.policy.config
+        offset = np.abs(x[..., :3] - np.asarray(config.target_position)).max(axis=-1)
+        return offset / config.position_scale
+
+    def output_scale(self) -> np.ndarray:
+        config = self.policy.config
+        return np.array([config.position_scale] * 3 + [config.rotation_scale] * 3)
+
+    def metadata(self) -> dict[str, str]:
+        config = self.policy.config
+        speed = _top_speed(self.policy)
+        return {
+            "snds.dim": "6",
+            "snds.input": "pose (x, y, z in user units; qx, qy, qz, qw, a unit quaternion)",
+            "snds.output": "twist (vx, vy, vz in user units per second; wx, wy, wz in rad/s, "
+            "world frame)",
+            "snds.target": json.dumps(
+                [float(c) for c in (*config.target_position, *config.target_orientation)]
+            ),
+            "snds.extent": repr(float(config.position_scale)),
+            "snds.angle_extent": repr(float(config.rotation_scale)),
+            "snds.top_speed": repr(speed * config.position_scale),
+            "snds.top_angular_speed": repr(speed * config.rotation_scale),
+        }
+
+
+def signature(policy: Policy) -> Signature:
+    """The :class:`Signature` of a policy's export, chosen from its type: poses or positions."""
+    return PoseSignature(policy) if isinstance(policy, PosePolicy) else Signature(policy)
+
+
+def _spread(count: int, dim: int, rng: np.random.Generator) -> np.ndarray:
+    """Offsets (count, dim), in extents: equal shares uniform in the boxes of
+    :data:`STATE_RADII` (half-widths)."""
+    radii = np.asarray(STATE_RADII)[np.arange(count) % len(STATE_RADII)]
+    return radii[:, None] * rng.uniform(-1.0, 1.0, size=(count, dim))
+
+
 def _trace(policy: Policy, dtype: torch.dtype) -> torch.export.ExportedProgram:
-    module = _Exported(policy, dtype)
-    example = torch.zeros(4, policy.dim, dtype=dtype)
+    kind = signature(policy)
+    module = kind.module(dtype)
+    example = torch.as_tensor(kind.random_inputs(4, np.random.default_rng(0)), dtype=dtype)
     batch = torch.export.Dim("batch", min=1)
     with torch.no_grad():
         return torch.export.export(module, (example,), dynamic_shapes={"x": {0: batch}})
@@ -130,7 +278,8 @@ def export_pt2(policy: Policy, path: str | Path, *, dtype: torch.dtype = torch.f
         dtype: Precision of the graph, its input and its output.
 
     Returns:
-        The path written. Its program maps positions (B, n) to velocities (B, n), user units.
+        The path written. Its program maps positions (B, n) to velocities (B, n), user units
+        (a pose policy: poses (B, 7) to twists (B, 6), see :class:`PoseSignature`).
     """
     _check_dtype(dtype)
     program = _trace(policy, dtype)
@@ -176,10 +325,13 @@ def export_onnx(policy: Policy, path: str | Path, *, dtype: torch.dtype = torch.
         dtype: Precision of the graph, its input and its output.
 
     Returns:
-        The path written. The graph maps ``x`` (B, n) to velocities (B, n), user units; its
-        metadata holds ``snds.dim``, ``snds.target`` (a JSON list), ``snds.extent`` (the
-        demonstrations' largest distance from the target), ``snds.top_speed`` (user units per
-        second), ``snds.dtype`` and ``snds.method``.
+        The path written. The graph maps ``x`` (B, n) to velocities (B, n), user units (a
+        pose policy: poses (B, 7) to twists (B, 6), see :class:`PoseSignature`); its metadata
+        holds ``snds.dim``, ``snds.input`` and ``snds.output`` (what they are, in words),
+        ``snds.target`` (a JSON list; a pose policy: position then quaternion),
+        ``snds.extent`` (the demonstrations' largest distance from the target),
+        ``snds.top_speed`` (user units per second), ``snds.dtype`` and ``snds.method``; a pose
+        policy's also ``snds.angle_extent`` (radians) and ``snds.top_angular_speed`` (rad/s).
     """
     _check_dtype(dtype)
     try:
@@ -199,14 +351,12 @@ def export_onnx(policy: Policy, path: str | Path, *, dtype: torch.dtype = torch.
                 torch.ops.aten.softplus.default: _softplus_onnx,
                 torch.ops.aten.scalar_tensor.default: _scalar_tensor_onnx,
                 torch.ops.aten.matmul.default: _matmul_onnx,
+                torch.ops.aten.atan2.default: _atan2_onnx,
             },
         )
     model = onnx_program.model_proto
     metadata = {
-        "snds.dim": str(policy.dim),
-        "snds.target": json.dumps([float(c) for c in policy.normalization.center]),
-        "snds.extent": repr(float(policy.normalization.length)),
-        "snds.top_speed": repr(_top_speed(policy)),
+        **signature(policy).metadata(),
         "snds.dtype": str(dtype).removeprefix("torch."),
         "snds.method": policy.method,
     }
@@ -240,6 +390,55 @@ def _matmul_onnx(self, other):
         return op.MatMul(self, other)
     axis = op.Constant(value_ints=[-1])
     return op.Squeeze(op.MatMul(self, op.Unsqueeze(other, axis)), axis)
+
+
+def _atan2_onnx(self, other):
+    # atan2(y, x) (the log map of a pose policy's orientation) from operations onnxruntime
+    # runs in both precisions: it has no float64 Atan kernel. Float64 takes the float32 angle
+    # and one Newton step, theta0 + tan(theta - theta0) with tan(theta - theta0) =
+    # (y cos theta0 - x sin theta0) / (x cos theta0 + y sin theta0): the float32 error of
+    # about 1e-7 leaves an error of its cube, below float64 rounding.
+    from onnxscript import ir
+    from onnxscript import opset18 as op
+
+    y, x = self, other
+    if self.dtype != ir.DataType.DOUBLE:
+        return _atan2_float32(y, x)
+    # atan2 is blind to a positive common factor: dividing by max(|y|, |x|) keeps the float32
+    # cast from overflowing or flushing to zero.
+    largest = op.Max(op.Abs(y), op.Abs(x))
+    zero = op.CastLike(0.0, y)
+    safe = op.Where(op.Greater(largest, zero), largest, op.CastLike(1.0, y))
+    y_unit, x_unit = op.Div(y, safe), op.Div(x, safe)
+    first = _atan2_float32(
+        op.Cast(y_unit, to=ir.DataType.FLOAT), op.Cast(x_unit, to=ir.DataType.FLOAT)
+    )
+    first = op.Cast(first, to=ir.DataType.DOUBLE)
+    cos, sin = op.Cos(first), op.Sin(first)
+    numerator = op.Sub(op.Mul(y_unit, cos), op.Mul(x_unit, sin))
+    # r cos(theta - theta0) ~ r = 1 after the division; 0 only at y = x = 0, where atan2 is 0.
+    denominator = op.Add(op.Mul(x_unit, cos), op.Mul(y_unit, sin))
+    step = op.Where(op.Greater(denominator, zero), op.Div(numerator, denominator), zero)
+    angle = op.Add(first, step)
+    # A y below float32's range (|y| < 1e-45 |x|) is cast to 0, which on the negative x axis
+    # gives +pi for a negative y, where atan2 is -pi: the sign of the float64 y decides.
+    wrong_side = op.And(op.Less(y, zero), op.Greater(angle, zero))
+    # A float64 constant: a Python number would be made a float32 one and cast.
+    turn = op.Constant(value=ir.tensor(np.array(2 * math.pi, dtype=np.float64)))
+    return op.Where(wrong_side, op.Sub(angle, turn), angle)
+
+
+def _atan2_float32(y, x):
+    # atan(y / x) moved into the quadrant of (x, y); on the y axis, +-pi/2 (0 at the origin).
+    # A y of -0 counts as +0 (pi, not -pi, on the negative x axis): the log map's y is a norm.
+    from onnxscript import opset18 as op
+
+    zero = op.CastLike(0.0, y)
+    pi = op.CastLike(math.pi, y)
+    base = op.Atan(op.Div(y, op.Where(op.Equal(x, zero), op.CastLike(1.0, y), x)))
+    turned = op.Where(op.GreaterOrEqual(y, zero), op.Add(base, pi), op.Sub(base, pi))
+    angle = op.Where(op.Less(x, zero), turned, base)
+    return op.Where(op.Equal(x, zero), op.Mul(op.Sign(y), op.CastLike(math.pi / 2, y)), angle)
 
 
 #: ``snds export --format`` choices.
@@ -324,11 +523,12 @@ def pickled_entries(path: str | Path) -> list[str]:
 
 
 def random_states(policy: Policy, count: int, *, seed: int = 0) -> np.ndarray:
-    """Random positions in user units, in boxes around the target of 1 to 1000x the extent.
+    """Random inputs of a policy's export, in boxes around the target of 1 to 1000x the extent.
 
-    Equal shares of the states are drawn uniformly from the boxes of :data:`STATE_RADII`
+    Equal shares of the positions are drawn uniformly from the boxes of :data:`STATE_RADII`
     (half-widths, in units of the demonstrations' extent), so a check sees the data region,
-    the space around it and states far beyond it.
+    the space around it and states far beyond it. A pose policy's inputs are poses: such
+    positions with orientations uniform on SO(3).
 
     Arguments:
         policy: Gives the target and the extent.
@@ -336,13 +536,10 @@ def random_states(policy: Policy, count: int, *, seed: int = 0) -> np.ndarray:
         seed: Seed of the draw.
 
     Returns:
-        Positions, shape (count, n), float64.
+        Positions, shape (count, n), or poses (position, quaternion), shape (count, 7);
+        float64.
     """
-    rng = np.random.default_rng(seed)
-    radii = np.asarray(STATE_RADII)[np.arange(count) % len(STATE_RADII)]
-    unit = rng.uniform(-1.0, 1.0, size=(count, policy.dim))
-    center = np.asarray(policy.normalization.center, dtype=float)
-    return center + policy.normalization.length * radii[:, None] * unit
+    return signature(policy).random_inputs(count, np.random.default_rng(seed))
 
 
 @dataclass(frozen=True)
@@ -360,8 +557,10 @@ class Check:
             for a float64 export): how far the export is from the exact policy.
         library_error: The library in the export's precision against itself in float64, on
             the same scale: the rounding that precision costs the library itself.
-        max_abs_diff: Largest absolute difference of a velocity component, user units.
-        max_abs_diff_near: The same over the states within 3x the extent (user units).
+        max_abs_diff: Largest absolute difference of a velocity component, user units (of a
+            twist's component for a pose policy: user units/s or rad/s).
+        max_abs_diff_near: The same over the states within 3x the extent (a pose policy:
+            whose position is).
         tolerance: The accepted ``max_error``.
         passed: Whether ``max_error <= tolerance``.
     """
@@ -393,7 +592,9 @@ def verify(
 ) -> Check:
     """Runs an exported model on random states and compares it with the library.
 
-    The library is evaluated in the exported file's precision, on the same inputs.
+    The library is evaluated in the exported file's precision, on the same inputs: a pose
+    policy's export on random poses (orientations uniform on SO(3)) against its
+    :meth:`~snds.se3.PosePolicy.twist`.
 
     Arguments:
         path: An ``.onnx`` or ``.pt2`` file written by this module.
@@ -406,18 +607,17 @@ def verify(
         The comparison.
     """
     path = Path(path)
+    kind = signature(policy)
     run = load_onnx(path) if path.suffix == ".onnx" else load_pt2(path)
-    probe = np.asarray(run(np.zeros((1, policy.dim))))
+    probe = np.asarray(run(random_states(policy, 1, seed=seed)))
     dtype = torch.float64 if probe.dtype == np.float64 else torch.float32
     states = random_states(policy, samples, seed=seed).astype(_NUMPY[dtype])
     exported = np.asarray(run(states), dtype=np.float64)
     with torch.no_grad():
-        reference = _copy(policy, dtype)(torch.as_tensor(states)).double().numpy()
-        exact = _copy(policy, torch.float64)(torch.as_tensor(states).double()).numpy()
+        reference = kind.library(torch.as_tensor(states)).double().numpy()
+        exact = kind.library(torch.as_tensor(states).double()).numpy()
     difference = np.abs(exported - reference)
-    near = np.abs(states - policy.normalization.center).max(axis=-1) <= 3 * (
-        policy.normalization.length
-    )
+    near = kind.extents(states) <= 3
     max_error = _relative_error(exported, reference, policy)
     if not np.all(np.isfinite(exported)):
         max_error = math.inf
@@ -438,9 +638,12 @@ def verify(
 
 
 def _relative_error(values: np.ndarray, reference: np.ndarray, policy: Policy) -> float:
-    """Largest |values - reference| / max(|reference|, top speed) over states (B, n)."""
+    """Largest |values - reference| / max(|reference|, top speed) over states (B, m), the
+    outputs divided by :meth:`Signature.output_scale` first."""
     if not values.size:
         return 0.0
+    divisors = signature(policy).output_scale()
+    values, reference = values / divisors, reference / divisors
     # The floor at the top speed: next to the target velocities vanish, and a difference of
     # rounding size relative to a vanishing velocity would say nothing about the model.
     scale = np.maximum(np.linalg.norm(reference, axis=-1), _top_speed(policy))
@@ -448,5 +651,6 @@ def _relative_error(values: np.ndarray, reference: np.ndarray, policy: Policy) -
 
 
 def _top_speed(policy: Policy) -> float:
-    """The normalisation's unit of speed (the demonstrations' top speed), user units/s."""
+    """The normalisation's unit of speed (the demonstrations' top speed), user units/s (a
+    pose policy: of its scaled state)."""
     return float(policy.normalization.length / policy.normalization.time)
