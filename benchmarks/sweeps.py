@@ -52,6 +52,7 @@ COPIED = (
     "sweep.json",
     "summary.md",
     "mse_violin.png",
+    "dtw_violin.png",
     "train_time.png",
     "converged.png",
 )

@@ -102,7 +102,8 @@ def local_sweep(cli_run, tmp_path_factory):
 
 def test_cli_writes_results_summary_and_figures(cli_run):
     names = {p.name for p in cli_run.iterdir()}
-    figures = {"mse_violin.png", "train_time.png", "converged.png", "streamlines.png"}
+    figures = {"mse_violin.png", "dtw_violin.png", "train_time.png", "converged.png"}
+    figures |= {"streamlines.png"}
     assert {"results.jsonl", "results.csv", "summary.md", "sweep.json", "models"} | figures <= names
     with open(cli_run / "results.csv") as handle:
         rows = list(csv.DictReader(handle))

@@ -603,6 +603,7 @@ def plot_benchmark(rows: Sequence[dict], out: Path) -> list[Path]:
 
     * ``mse_violin.png``: log10 of the velocity MSE (paper scale), one violin per method and
       motion, every run a dot (a violin needs two runs or more); the paper's Fig. 4.
+    * ``dtw_violin.png``: the same for the DTW of rollouts from the demonstrations' starts.
     * ``train_time.png``: train seconds, mean and std over seeds.
     * ``converged.png``: the fraction of random starts that reached the target, mean over
       seeds with the worst seed marked.
@@ -626,24 +627,33 @@ def plot_benchmark(rows: Sequence[dict], out: Path) -> list[Path]:
             [r[key] for r in rows if r["motion"] == motion and r["method"] == method], dtype=float
         )
 
-    fig = Figure(figsize=size, layout="constrained")
-    ax = fig.subplots()
-    for i, method in enumerate(methods):
-        color = f"C{i}"
-        for x, motion in zip(offsets(i), motions):
-            logs = np.log10(np.clip(values(motion, method, "velocity_mse_paper"), 1e-12, None))
-            if len(logs) > 1 and np.ptp(logs) > 0:
-                parts = ax.violinplot([logs], positions=[x], widths=0.9 * width, showextrema=False)
-                for body in parts["bodies"]:
-                    body.set_facecolor(color)
-                    body.set_alpha(0.4)
-            ax.scatter(np.full(len(logs), x), logs, s=10, color=color, zorder=3)
-        ax.scatter([], [], color=color, label=method)
-    ax.set_xticks(range(len(motions)), motions, rotation=30, ha="right")
-    ax.set_xlim(-0.5, len(motions) - 0.5)
-    ax.set_ylabel("log10 velocity MSE (paper scale)")
-    ax.legend()
-    paths = [_save(fig, out / "mse_violin.png")]
+    def violins(key: str, label: str, name: str) -> Path:
+        fig = Figure(figsize=size, layout="constrained")
+        ax = fig.subplots()
+        for i, method in enumerate(methods):
+            color = f"C{i}"
+            for x, motion in zip(offsets(i), motions):
+                logs = np.log10(np.clip(values(motion, method, key), 1e-12, None))
+                logs = logs[np.isfinite(logs)]
+                if len(logs) > 1 and np.ptp(logs) > 0:
+                    parts = ax.violinplot(
+                        [logs], positions=[x], widths=0.9 * width, showextrema=False
+                    )
+                    for body in parts["bodies"]:
+                        body.set_facecolor(color)
+                        body.set_alpha(0.4)
+                ax.scatter(np.full(len(logs), x), logs, s=10, color=color, zorder=3)
+            ax.scatter([], [], color=color, label=method)
+        ax.set_xticks(range(len(motions)), motions, rotation=30, ha="right")
+        ax.set_xlim(-0.5, len(motions) - 0.5)
+        ax.set_ylabel(label)
+        ax.legend()
+        return _save(fig, out / name)
+
+    paths = [
+        violins("velocity_mse_paper", "log10 velocity MSE (paper scale)", "mse_violin.png"),
+        violins("dtw_paper", "log10 DTW (paper scale)", "dtw_violin.png"),
+    ]
 
     fig = Figure(figsize=size, layout="constrained")
     ax = fig.subplots()
