@@ -75,3 +75,45 @@ def test_velocity_losses_and_window_train(spiral, shape):
     config = dataclasses.replace(FAST, steps=100, velocity_shape=shape, window=2)
     result = fit(policy, spiral, no_split(spiral), config, progress=False)
     assert result.history[-1] < result.history[0]
+
+
+class _QuadraticV(torch.nn.Module):
+    """A stand-in policy whose V = (A x) . (A x): round when A is a multiple of the identity."""
+
+    stable = True
+
+    def __init__(self, matrix):
+        super().__init__()
+        self.matrix = torch.nn.Parameter(torch.as_tensor(matrix, dtype=torch.float64))
+
+    def lyapunov(self, x):
+        return ((x @ self.matrix.T) ** 2).sum(-1)
+
+
+def test_shape_penalty_is_zero_for_round_v_and_blind_to_its_scale():
+    with torch.no_grad():
+        generator = torch.Generator().manual_seed(0)
+        round_v = train_module.shape_penalty(_QuadraticV(3.0 * np.eye(2)), 2, generator)
+        assert float(round_v) < 1e-24
+        state = generator.get_state()
+        skewed = train_module.shape_penalty(_QuadraticV(np.diag([1.0, 10.0])), 2, generator)
+        generator.set_state(state)
+        scaled = train_module.shape_penalty(_QuadraticV(np.diag([7.0, 70.0])), 2, generator)
+        assert float(skewed) > 0.1
+        # The projection does not change when V is scaled, and neither does the penalty.
+        assert float(scaled) == pytest.approx(float(skewed), rel=1e-9)
+
+
+def test_shape_weight_rounds_v_and_keeps_the_fit(spiral):
+    split = split_samples(spiral, test_fraction=0.2, seed=0)
+    penalties = {}
+    for weight in (0.0, 1.0):
+        policy = make_policy(spiral, dtype=torch.float32)
+        config = dataclasses.replace(FAST, shape_weight=weight)
+        fit(policy, spiral, split, config, progress=False)
+        assert accuracy(policy.double(), spiral, split)["velocity_mse_paper"] < 5e-3
+        generator = torch.Generator().manual_seed(1)
+        with torch.no_grad():
+            penalty = train_module.shape_penalty(policy.double(), 2, generator)
+        penalties[weight] = float(penalty)
+    assert penalties[1.0] < 0.5 * penalties[0.0]

@@ -140,6 +140,13 @@ def _build_parser() -> argparse.ArgumentParser:
         "--velocity-loss", choices=["mse", "srvf"], default=TrainConfig.velocity_shape
     )
     train.add_argument(
+        "--shape-weight",
+        type=float,
+        default=TrainConfig.shape_weight,
+        help="weight of the penalty that keeps V's sublevel sets round off the data, against "
+        "stiff fields (e.g. 0.01 for sparse high-dimensional data; 0: off)",
+    )
+    train.add_argument(
         "--decay-rate",
         type=float,
         default=PolicyConfig.decay_rate,
@@ -355,6 +362,7 @@ def _train_settings(args: argparse.Namespace) -> tuple[dict, TrainConfig]:
         steps=args.steps,
         window=args.window,
         velocity_shape=args.velocity_loss,
+        shape_weight=args.shape_weight,
         seed=args.seed,
         device=args.device,
     )

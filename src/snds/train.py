@@ -30,7 +30,7 @@ class TrainingError(SNDSError, RuntimeError):
 
 @dataclass(frozen=True, kw_only=True)
 class TrainConfig:
-    """How to fit a policy; saved beside the model.
+    r"""How to fit a policy; saved beside the model.
 
     Attributes:
         steps: Maximum number of optimiser steps.
@@ -45,6 +45,13 @@ class TrainConfig:
         velocity_shape: "mse" (the authors' code) or "srvf" (the paper).
         window: Nw, the Euler steps of the multi-step term (0: velocity term only).
         velocity_weight: gamma_0; the window terms have gamma_i = 2^-i.
+        shape_weight: Weight of the penalty :math:`\operatorname{Var}_x \log(V(x) / |x|^2)`
+            over 256 random states per step, uniform in :math:`[-2, 2]^n` (model
+            coordinates): it keeps V's sublevel sets round where the data do not ask
+            otherwise (0: off, the default). An ill-conditioned V makes the projected field
+            stiff: on Messy Snake lifted to SE(3) (one demonstration, 6-D) V's Hessian
+            eigenvalues span 0.1-1000 and the largest safe Euler step is 20 us against the
+            data's 8.9 ms. The projection is unchanged by scaling V, and so is the penalty.
         patience: Stop when the smoothed loss has not improved by `min_improvement` (relative)
             for this many steps (0: never stop early).
         min_improvement: Relative improvement that resets the patience counter.
@@ -65,6 +72,7 @@ class TrainConfig:
     velocity_shape: str = "mse"
     window: int = 0
     velocity_weight: float = 1.0
+    shape_weight: float = 0.0
     patience: int = 0
     min_improvement: float = 1e-3
     max_restarts: int = 5
@@ -87,6 +95,8 @@ class TrainConfig:
                 f"window and batch sizes must be >= 0, got window {self.window}, batch_size "
                 f"{self.batch_size}, window_batch_size {self.window_batch_size}"
             )
+        if not (self.shape_weight >= 0 and math.isfinite(self.shape_weight)):
+            raise ConfigError(f"shape_weight must be a number >= 0, got {self.shape_weight}")
         if not (self.lr > 0 and math.isfinite(self.lr)):
             raise ConfigError(f"lr must be a positive number, got {self.lr}")
         try:
@@ -425,4 +435,24 @@ def _loss(
         if index is not None:
             starts, targets, steps = starts[index], targets[index], steps[index]
         loss = loss + window_loss(policy.field, starts, targets, steps)
+    if config.shape_weight and policy.stable:
+        loss = loss + config.shape_weight * shape_penalty(policy, x.shape[-1], generator)
     return loss
+
+
+def shape_penalty(
+    policy: Policy, dim: int, generator: torch.Generator, count: int = 256
+) -> torch.Tensor:
+    r""":math:`\operatorname{Var}_x \log(V(x) / |x|^2)` at ``count`` random states, uniform in
+    :math:`[-2, 2]^n` (model coordinates); 0 exactly when V is a multiple of :math:`|x|^2` there.
+
+    Arguments:
+        policy: A policy with a Lyapunov function.
+        dim: The state dimension n.
+        generator: Source of the random states (the training's, so runs stay reproducible).
+        count: Number of states.
+    """
+    param = next(policy.parameters())
+    x = torch.rand(count, dim, generator=generator).to(param) * 4.0 - 2.0
+    ratio = policy.lyapunov(x) / (x * x).sum(-1)
+    return torch.log(ratio).var()
