@@ -68,12 +68,16 @@ def _write(part: str, row: dict | None, header: str, columns: list[tuple[str, st
         key = "-".join(str(row[k]) for k in ("task", "method", "fourier_scale") if k in row)
         (folder / f"{key.replace(' ', '_')}.json").write_text(json.dumps(row, indent=2) + "\n")
     rows = [json.loads(path.read_text()) for path in folder.glob("*.json")]
-    rows.sort(key=lambda r: (r["order"], -r.get("fourier_scale", 0), r.get("method") == "bc"))
+    rows.sort(
+        key=lambda r: (r["order"], -r.get("fourier_scale", 0), r["method"] == "bc", r["method"])
+    )
     out = HERE / "results"
     (out / f"{part}.json").write_text(json.dumps(rows, indent=2) + "\n")
     with (out / f"{part}.csv").open("w", newline="") as file:
         flat = [{k: v for k, v in r.items() if not isinstance(v, dict | list)} for r in rows]
-        writer = csv.DictWriter(file, fieldnames=list(flat[0]))
+        # Rows of later variants may carry more fields; the header is their union.
+        fields = list(dict.fromkeys(k for r in flat for k in r))
+        writer = csv.DictWriter(file, fieldnames=fields)
         writer.writeheader()
         writer.writerows(flat)
     lines = [header, "", "| " + " | ".join(name for name, _ in columns) + " |"]
@@ -167,7 +171,9 @@ def se3(args: argparse.Namespace) -> None:
             )
             split = split_samples(tangent, test_fraction=0.2, seed=args.seed)
             cpu = time.process_time()
-            result = fit(policy, tangent, split, TrainConfig(steps=args.steps, seed=args.seed))
+            shape = args.shape_weight if stable else 0.0
+            config = TrainConfig(steps=args.steps, seed=args.seed, shape_weight=shape)
+            result = fit(policy, tangent, split, config)
             cpu = time.process_time() - cpu
             metrics = evaluate_pose(
                 policy, demos, split, seed=args.seed, rollouts=args.rollouts, samples=args.samples
@@ -176,7 +182,9 @@ def se3(args: argparse.Namespace) -> None:
             row = {
                 "task": task,
                 "order": SE3_TASKS.index(task),
-                "method": method,
+                # A non-default shape penalty is a variant of its own, with its own row.
+                "method": f"{method}, shape {shape:g}" if shape else method,
+                "shape_weight": shape,
                 "demos": len(demos),
                 "extent": demos.extent(),
                 "train_seconds": result.seconds,
@@ -214,6 +222,7 @@ def _se3_table(args: argparse.Namespace) -> tuple[str, list[tuple[str, str]]]:
         ("final orientation error [rad]", "{final_orientation_error:.4f}"),
         ("converged", "{converged_fraction:.3f} of {stability[rollouts]}"),
         ("violations", "{decrease_violations} of {samples_checked}"),
+        ("largest safe step [s]", "{stability[largest_safe_dt]:.2g}"),
         ("train [s] wall / CPU", "{train_seconds:.0f} / {train_cpu_seconds:.0f}"),
     ]
     return header, columns
@@ -233,6 +242,12 @@ def main() -> None:
         "--methods", nargs="+", default=["snds", "bc"], help="se3 part: snds and/or bc"
     )
     parser.add_argument("--fourier-scales", type=float, nargs="+", default=[5.0, 2.0])
+    parser.add_argument(
+        "--shape-weight",
+        type=float,
+        default=0.0,
+        help="se3 part: TrainConfig.shape_weight of the SNDS runs (a row of its own if > 0)",
+    )
     parser.add_argument(
         "--collect", action="store_true", help="only rebuild the tables from saved runs"
     )

@@ -44,6 +44,7 @@ def test_train_writes_model_metrics_and_config(trained):
     assert stability["converged_fraction"] == 1.0
     description = json.loads((trained / "model.json").read_text())
     assert description["train"]["steps"] == 150
+    assert description["train"]["shape_weight"] == 0.0  # off for position models
     assert description["data"] == {"motion": "Sine", "demos": 3}
 
 
