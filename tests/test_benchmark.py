@@ -239,3 +239,29 @@ def test_scheduler_without_dask_says_how_to_install(tmp_path, monkeypatch):
     monkeypatch.setattr(benchmark, "run_task", lambda task, settings: pytest.fail("ran"))
     with pytest.raises(SNDSError, match=r"pip install snds\[cluster\]"):
         run_sweep(TASKS, out=tmp_path, scheduler="tcp://127.0.0.1:1", **TINY)
+
+
+def test_summary_means_by_hand_and_rows_without_a_field():
+    from snds.benchmark import summarise
+
+    def row(seed, mse, cpu):
+        return {
+            "motion": "Sine",
+            "method": "snds",
+            "seed": seed,
+            "velocity_mse_paper": mse,
+            "dtw_paper": 1.0 + seed,
+            "train_seconds": 10.0,
+            "train_cpu_seconds": cpu,
+            "converged_fraction": 1.0,
+            "decrease_violations": 0,
+            "shortened_fraction": 0.5,
+        }
+
+    line = summarise([row(0, 0.001, None), row(1, 0.003, None)]).splitlines()[2]
+    # mean and (population) std over the two seeds, by hand: 0.002 ± 0.001, DTW 1.5 ± 0.5
+    assert "| 0.002 ± 0.001 |" in line and "| 1.5 ± 0.5 |" in line
+    # an older sweep's rows without CPU time say so, instead of nan
+    assert "| n/a |" in line and "nan" not in line
+    mixed = summarise([row(0, 0.001, 4.0), row(1, 0.003, None)]).splitlines()[2]
+    assert "| 4.0 ± 0.0 (1 runs) |" in mixed

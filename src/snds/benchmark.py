@@ -430,8 +430,13 @@ def summarise(rows: Sequence[dict]) -> str:
     """
 
     def stat(group: list[dict], key: str, fmt: str) -> str:
-        values = np.array([r.get(key, np.nan) for r in group], dtype=float)
-        return f"{values.mean():{fmt}} ± {values.std():{fmt}}"
+        values = np.array([r.get(key) for r in group], dtype=float)
+        values = values[np.isfinite(values)]
+        # Rows of older sweeps may lack a field (train CPU s before it was recorded).
+        if len(values) == 0:
+            return "n/a"
+        more = f" ({len(values)} runs)" if len(values) < len(group) else ""
+        return f"{values.mean():{fmt}} ± {values.std():{fmt}}{more}"
 
     lines = [
         "| motion | method | runs | velocity MSE (paper scale) | paper's SNDS MSE "
