@@ -233,3 +233,21 @@ def test_cli_trains_evaluates_and_plots_a_pose_file(pose_demos, tmp_path):
     assert {"position_dtw", "orientation_error_along", "final_orientation_error"} <= set(metrics)
     assert metrics["stability"]["rollouts"] == 5
     assert (out / "paths3d.png").is_file() and (out / "rollout_lyapunov.png").is_file()
+
+
+def test_safe_twist_held_for_one_period_decreases_v(untrained, pose_demos):
+    from snds.se3 import PoseGuard, random_poses
+
+    guard = PoseGuard(untrained)
+    rng = np.random.default_rng(4)
+    p, q = random_poses(pose_demos.target_position, 3 * pose_demos.extent(), 500, rng)
+    x = torch.as_tensor(np.concatenate([p, q], axis=1))
+    dt = 2.0  # a long control period, so that some twists must be scaled down
+    with torch.no_grad():
+        twist, h = guard.safe_twist(x, dt)
+        # holding the scaled twist for dt is the guarded step of length h
+        after = guard.advance(x, torch.full((len(x),), dt, dtype=x.dtype), twist)
+        before, now = guard.lyapunov(x), guard.lyapunov(after)
+    assert (h <= dt).all() and (h < dt).any()
+    assert (now < before).all()
+    assert torch.allclose(after[:, 3:].norm(dim=-1), torch.ones(len(x), dtype=x.dtype))

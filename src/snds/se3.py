@@ -530,6 +530,56 @@ class PoseStabilityReport:
         return asdict(self)
 
 
+class PoseGuard:
+    r"""A pose policy in the form :func:`snds.rollout.guarded_step` takes: a pose is one row
+    (p, q) of 7 numbers, its velocity the twist :math:`(v, \omega)`, and a step the
+    exponential map on SO(3).
+
+    Arguments:
+        policy: A pose policy with a Lyapunov function (for :meth:`lyapunov` and :meth:`rate`).
+    """
+
+    def __init__(self, policy: PosePolicy) -> None:
+        self.policy = policy
+
+    def field(self, x: Tensor) -> Tensor:
+        """Twists (B, 6) at poses (B, 7)."""
+        return self.policy.twist(x[:, :3], x[:, 3:])
+
+    def lyapunov(self, x: Tensor) -> Tensor:
+        """V (model units) at poses (B, 7), shape (B,)."""
+        tangent_v, _ = policy_guard(self.policy)
+        return tangent_v(self.policy.tangent(x[:, :3], x[:, 3:]))
+
+    def rate(self, x: Tensor, value: Tensor) -> Tensor:
+        """The promised decrease rate of V per second at poses (B, 7), shape (B,)."""
+        _, tangent_rate = policy_guard(self.policy)
+        return tangent_rate(self.policy.tangent(x[:, :3], x[:, 3:]), value)
+
+    @staticmethod
+    def advance(x: Tensor, h: Tensor, twist: Tensor) -> Tensor:
+        """Poses (B, 7) moved by their twists (B, 6) for h (B,) seconds."""
+        h = h[:, None]
+        orientation = roma.quat_normalize(rotate(h * twist[:, 3:], x[:, 3:]))
+        return torch.cat([x[:, :3] + h * twist[:, :3], orientation], -1)
+
+    def safe_twist(self, x: Tensor, dt: float) -> tuple[Tensor, Tensor]:
+        """The twists at poses (B, 7), each scaled by h / dt for the guarded step h <= dt.
+
+        A controller that holds a twist for one period dt moves the pose by about
+        :func:`advance`; scaled so, that step satisfies the sufficient-decrease condition of
+        :func:`snds.rollout.guarded_step`, and a stiff field cannot make the arm chatter on a
+        discrete cycle at constant V.
+
+        Returns:
+            The scaled twists, shape (B, 6), and h, shape (B,).
+        """
+        _, h, _ = guarded_step(
+            self.field, self.lyapunov, x, dt=dt, rate=self.rate, advance=self.advance
+        )
+        return self.field(x) * (h / dt).unsqueeze(-1), h
+
+
 def random_poses(
     center: np.ndarray, half_width: float, count: int, rng: np.random.Generator
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -604,16 +654,10 @@ def check_pose_stability(
     # A pose is one row (p, q) of 7 numbers, so that the guarded step of every policy's check
     # (snds.rollout.guarded_step) applies, with the exponential map as its step.
     pose = torch.cat([p, q], -1)
+    guard = PoseGuard(policy)
+    field, lyapunov, rate, advance = guard.field, guard.lyapunov, guard.rate, guard.advance
     value = level = None
     if policy.stable:
-        tangent_v, tangent_rate = policy_guard(policy)
-
-        def lyapunov(x: Tensor) -> Tensor:
-            return tangent_v(policy.tangent(x[:, :3], x[:, 3:]))
-
-        def rate(x: Tensor, v: Tensor) -> Tensor:
-            return tangent_rate(policy.tangent(x[:, :3], x[:, 3:]), v)
-
         value = lyapunov(pose)
         # Inside {V < c} (snds.stability.settle_level, ball of radius rho in model units) a
         # rollout stays within half of both tolerances for good, since guarded steps never
@@ -622,14 +666,6 @@ def check_pose_stability(
         to_model = policy.scales.numpy() * policy.normalization.length
         radius = 0.5 * min(position_tolerance / to_model[0], angle_tolerance / to_model[3])
         level = settle_level(policy.lyapunov, radius, dim=6)
-
-    def field(x: Tensor) -> Tensor:
-        return policy.twist(x[:, :3], x[:, 3:])
-
-    def advance(x: Tensor, h: Tensor, twist: Tensor) -> Tensor:
-        h = h[:, None]
-        orientation = roma.quat_normalize(rotate(h * twist[:, 3:], x[:, 3:]))
-        return torch.cat([x[:, :3] + h * twist[:, :3], orientation], -1)
 
     for step in range(1, steps + 1):
         now = pose[active]

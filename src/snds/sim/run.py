@@ -32,7 +32,8 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from snds.policy import Policy, float64_copy
-from snds.se3 import PosePolicy
+from snds.rollout import guarded_step, policy_guard
+from snds.se3 import PoseGuard, PosePolicy
 from snds.sim.arm import Arm, EndEffector, joint_velocity, orientation_error
 from snds.sim.robots import Robot, SimulationError, get_robot
 
@@ -281,10 +282,21 @@ class PositionCommander:
         return self.placement.to_world(start), self.goal_orientation
 
     def twist(self, pose: EndEffector) -> np.ndarray:
-        """The policy's velocity at the measured position; the holds on the rest."""
-        state = self.placement.to_task(pose.position)
+        """The policy's velocity at the measured position; the holds on the rest.
+
+        With a Lyapunov function the velocity is scaled down so that holding it for one
+        control period decreases V enough (the guarded step of
+        :func:`snds.rollout.guarded_step`), as for pose policies.
+        """
+        state = torch.as_tensor(self.placement.to_task(pose.position))[None]
         with torch.no_grad():
-            velocity = self.policy(torch.as_tensor(state)[None])[0].numpy()
+            velocity = self.policy(state)
+            if self.policy.stable:
+                lyapunov, rate = policy_guard(self.policy)
+                dt = 1.0 / self.config.control_rate
+                _, h, _ = guarded_step(self.policy, lyapunov, state, dt=dt, rate=rate)
+                velocity = velocity * (h / dt).unsqueeze(-1)
+            velocity = velocity[0].numpy()
         gain = self.config.hold_gain
         return np.concatenate(
             [
@@ -310,6 +322,7 @@ class PoseCommander:
 
     def __init__(self, policy: PosePolicy, placement: PosePlacement, config: SimConfig) -> None:
         self.policy = policy
+        self.guard = PoseGuard(policy)
         self.pose_placement = placement
         self.placement = placement.positions
         self.rotation = placement.rotation
@@ -349,13 +362,22 @@ class PoseCommander:
         return self.pose_placement.to_world(start[:3], start[3:] / norm)
 
     def twist(self, pose: EndEffector) -> np.ndarray:
-        """The policy's linear and angular velocity at the measured pose, in the world."""
+        """The policy's linear and angular velocity at the measured pose, in the world.
+
+        With a Lyapunov function the twist is scaled down so that holding it for one control
+        period decreases V enough (:meth:`snds.se3.PoseGuard.safe_twist`): a stiff field
+        would otherwise make the arm chatter between two poses at constant V (Messy Snake
+        at 100 Hz: the commanded joint velocities flipped sign every period, 0.10 m from the
+        target).
+        """
         position, orientation = self.pose_placement.to_task(pose.position, pose.orientation)
+        x = torch.as_tensor(np.concatenate([position, orientation]))[None]
         with torch.no_grad():
-            twist = self.policy.twist(
-                torch.as_tensor(position)[None], torch.as_tensor(orientation)[None]
-            )[0].numpy()
-        return self.pose_placement.twist_to_world(twist)
+            if self.policy.stable:
+                twist = self.guard.safe_twist(x, 1.0 / self.config.control_rate)[0][0]
+            else:
+                twist = self.guard.field(x)[0]
+        return self.pose_placement.twist_to_world(twist.numpy())
 
     def arrived(self, distance: float, angle: float) -> bool:
         """Within both tolerances."""
