@@ -541,6 +541,8 @@ class PoseGuard:
 
     def __init__(self, policy: PosePolicy) -> None:
         self.policy = policy
+        # V and its rate in the tangent space, built once (policy_guard only makes closures).
+        self._tangent_v, self._tangent_rate = policy_guard(policy)
 
     def field(self, x: Tensor) -> Tensor:
         """Twists (B, 6) at poses (B, 7)."""
@@ -548,13 +550,11 @@ class PoseGuard:
 
     def lyapunov(self, x: Tensor) -> Tensor:
         """V (model units) at poses (B, 7), shape (B,)."""
-        tangent_v, _ = policy_guard(self.policy)
-        return tangent_v(self.policy.tangent(x[:, :3], x[:, 3:]))
+        return self._tangent_v(self.policy.tangent(x[:, :3], x[:, 3:]))
 
     def rate(self, x: Tensor, value: Tensor) -> Tensor:
         """The promised decrease rate of V per second at poses (B, 7), shape (B,)."""
-        _, tangent_rate = policy_guard(self.policy)
-        return tangent_rate(self.policy.tangent(x[:, :3], x[:, 3:]), value)
+        return self._tangent_rate(self.policy.tangent(x[:, :3], x[:, 3:]), value)
 
     @staticmethod
     def advance(x: Tensor, h: Tensor, twist: Tensor) -> Tensor:
@@ -574,10 +574,12 @@ class PoseGuard:
         Returns:
             The scaled twists, shape (B, 6), and h, shape (B,).
         """
+        twist = self.field(x)
+        # The twist is evaluated once: the guarded step only asks for it at x.
         _, h, _ = guarded_step(
-            self.field, self.lyapunov, x, dt=dt, rate=self.rate, advance=self.advance
+            lambda _: twist, self.lyapunov, x, dt=dt, rate=self.rate, advance=self.advance
         )
-        return self.field(x) * (h / dt).unsqueeze(-1), h
+        return twist * (h / dt).unsqueeze(-1), h
 
 
 def random_poses(

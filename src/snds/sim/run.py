@@ -261,6 +261,7 @@ class PositionCommander:
         self.placement = placement
         self.goal_orientation = hold
         self.config = config
+        self.guard = policy_guard(policy) if policy.stable else None
 
     @classmethod
     def build(
@@ -291,10 +292,11 @@ class PositionCommander:
         state = torch.as_tensor(self.placement.to_task(pose.position))[None]
         with torch.no_grad():
             velocity = self.policy(state)
-            if self.policy.stable:
-                lyapunov, rate = policy_guard(self.policy)
+            if self.guard is not None:
+                lyapunov, rate = self.guard
                 dt = 1.0 / self.config.control_rate
-                _, h, _ = guarded_step(self.policy, lyapunov, state, dt=dt, rate=rate)
+                # The velocity is evaluated once: the guarded step only asks for it at state.
+                _, h, _ = guarded_step(lambda _: velocity, lyapunov, state, dt=dt, rate=rate)
                 velocity = velocity * (h / dt).unsqueeze(-1)
             velocity = velocity[0].numpy()
         gain = self.config.hold_gain
