@@ -23,6 +23,11 @@ def test_fit_learns_a_linear_system_and_stays_stable(spiral):
     metrics = accuracy(policy.double(), spiral, split)
     assert metrics["velocity_mse_paper"] < 5e-3
     assert metrics["final_distance"] < 0.05 * spiral.extent()
+    # By hand: the MSE over the mean squared speed of the same (test) samples.
+    velocities = np.concatenate([d.velocities[m] for d, m in zip(spiral, split.test())])
+    energy = np.mean(velocities**2)
+    assert metrics["velocity_error_relative"] == pytest.approx(metrics["velocity_mse"] / energy)
+    assert 0 < metrics["velocity_error_relative"] < 0.05
 
 
 def test_same_seed_same_result(spiral):

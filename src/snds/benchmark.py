@@ -69,6 +69,7 @@ ROW_FIELDS: tuple[str, ...] = (
     "train_cpu_seconds",
     "velocity_mse",
     "velocity_mse_paper",
+    "velocity_error_relative",
     "dtw",
     "dtw_paper",
     "final_distance",

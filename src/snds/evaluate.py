@@ -33,7 +33,7 @@ def reproduce(policy: Policy, demos: Demonstrations, indices: list[int]) -> list
 
 
 def accuracy(policy: Policy, demos: Demonstrations, split: Split) -> dict[str, float]:
-    """Velocity MSE on the test samples; DTW, Frechet distance, swept error area (2-D only) and
+    """Velocity MSE on the test samples (also relative to their mean squared speed); DTW, Frechet distance, swept error area (2-D only) and
     final distance of the reproductions from the demonstrations' starts.
 
     Both in user units and in the paper's scale (positions relative to the target divided by
@@ -70,6 +70,10 @@ def accuracy(policy: Policy, demos: Demonstrations, split: Split) -> dict[str, f
         "swept_area_paper": float(np.mean(areas) / extent**2),
         "velocity_mse": velocity_mse(predicted, velocities),
         "velocity_mse_paper": velocity_mse(predicted / speed, velocities / speed),
+        # The share of the demonstrated velocities' energy the policy misses: scale-free, so
+        # one bar fits every motion and unit (0: exact; 1: as bad as standing still).
+        "velocity_error_relative": velocity_mse(predicted, velocities)
+        / velocity_mse(np.zeros_like(velocities), velocities),
         "velocity_mse_on": "test samples" if has_test else "training samples (no test split)",
         "dtw": float(np.mean(dtws)),
         "dtw_paper": float(np.mean(dtws) / extent),

@@ -1,0 +1,262 @@
+"""Reliability: default training on every LASA motion and every real file, 5 seeds, no reruns.
+
+Two parts, one table in benchmarks/README.md (``reliability`` markers):
+
+* ``lasa``: ``snds benchmark --methods snds --motions all --seeds 5`` (30 motions x 5 seeds,
+  the paper's protocol: a random 0.8 / 0.2 split of the samples, default training);
+* ``real``: ``snds train --data FILE --seed S`` with its defaults on each file of
+  ``../shared/data`` (3D-pick-box's demonstrations end at two places 0.26 m apart, so its
+  pairs 0,2 and 1,3 are two tasks, as a user would select them with ``--demos``).
+
+Every run faces the same bars, set before the sweep: the held-out velocity error at most
+:data:`ACCURACY_BAR` of the demonstrated velocities' mean square (``velocity_error_relative``,
+scale-free, so one bar fits millimetres and metres), converged fraction 1.0 from the stability
+check's random starts, and zero decrease violations. Both parts use the same check: 300
+rollouts from the 3x box, 20,000 decrease samples in the 10x box (float64).
+
+    python benchmarks/reliability.py                  # both parts; resumes
+    python benchmarks/reliability.py --part real --seeds 2
+
+Runs go to ``runs/reliability/{lasa,real}/`` (models included); rows, a per-task summary and
+the README table go to ``benchmarks/results/reliability/``. Both parts resume: a finished run
+is not run again.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import datetime
+import json
+import os
+import platform
+import statistics
+import time
+from collections.abc import Sequence
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+from _readme import write_readme_section
+
+from snds.benchmark import (
+    SweepSettings,
+    finished_rows,
+    make_tasks,
+    resolve_motions,
+    run_sweep,
+)
+from snds.io import write_json
+
+HERE = Path(__file__).resolve().parent
+SHARED = HERE.parent.parent / "shared" / "data"
+RESULTS = HERE / "results" / "reliability"
+#: The largest held-out velocity error, relative to the demonstrated velocities' mean square.
+ACCURACY_BAR = 0.05
+#: task -> (file in ../shared/data, ``--demos`` selection or None for all)
+REAL_TASKS: dict[str, tuple[str, str | None]] = {
+    "Messy_snake": ("Messy_snake.mat", None),
+    "3D_Cshape_top": ("3D_Cshape_top.mat", None),
+    "3D_viapoint_1": ("3D_viapoint_1.mat", None),
+    "3D-pick-box (0,2)": ("3D-pick-box.mat", "0,2"),
+    "3D-pick-box (1,3)": ("3D-pick-box.mat", "1,3"),
+    "3D_sink": ("3D_sink.mat", None),
+}
+
+
+def meets_bars(row: dict) -> dict[str, bool]:
+    """Which of the three bars a run meets."""
+    error = row.get("velocity_error_relative")
+    return {
+        "accuracy": error is not None and error <= ACCURACY_BAR,
+        "converged": row.get("converged_fraction") == 1.0,
+        "no_violations": row.get("decrease_violations") == 0,
+    }
+
+
+# ---------------------------------------------------------------------------------------------
+# The two parts.
+
+
+def run_lasa(args: argparse.Namespace, settings: SweepSettings) -> None:
+    tasks = make_tasks(resolve_motions(args.motions), ["snds"], seeds=args.seeds)
+    run_sweep(tasks, out=args.runs / "lasa", settings=settings, jobs=args.jobs)
+
+
+def lasa_rows(args: argparse.Namespace) -> list[dict]:
+    """The finished LASA runs of these motions and seeds, motion-major."""
+    done = finished_rows(args.runs / "lasa")
+    keys = [t.key for t in make_tasks(resolve_motions(args.motions), ["snds"], seeds=args.seeds)]
+    return [{"part": "lasa", "task": done[k]["motion"], **done[k]} for k in keys if k in done]
+
+
+def _train_real(argv: list[str]) -> float:
+    """Runs ``snds`` with these arguments in this worker; returns its CPU seconds."""
+    from snds.cli import main
+
+    cpu = time.process_time()
+    code = main(argv)
+    if code != 0:
+        raise RuntimeError(f"snds {' '.join(argv)} exited with {code}")
+    return time.process_time() - cpu
+
+
+def _real_row(task: str, seed: int, directory: Path, cpu: float) -> dict:
+    metrics = json.loads((directory / "metrics.json").read_text())
+    stability = metrics["stability"]
+    return {
+        "part": "real",
+        "task": task,
+        "seed": seed,
+        "train_seconds": metrics["train_seconds"],
+        "train_and_check_cpu_seconds": cpu,
+        **{k: metrics[k] for k in ("velocity_mse", "velocity_error_relative", "dtw_paper")},
+        **{
+            k: stability[k]
+            for k in ("converged_fraction", "decrease_violations", "samples_checked")
+        },
+        "final_distance": metrics["final_distance"],
+    }
+
+
+def _real_dir(args: argparse.Namespace, task: str, seed: int) -> Path:
+    return args.runs / "real" / task.replace(" ", "_") / f"seed={seed}"
+
+
+def run_real(args: argparse.Namespace, settings: SweepSettings) -> None:
+    """Each (file, seed) through ``snds train`` with its defaults; skips finished runs."""
+    if not SHARED.is_dir():
+        print(f"reliability: {SHARED} is absent; skipping the real files")
+        return
+    pending = []
+    for task, (name, select) in REAL_TASKS.items():
+        for seed in range(args.seeds):
+            directory = _real_dir(args, task, seed)
+            if (directory / "row.json").is_file():
+                continue
+            argv = ["--quiet", "train", "--data", str(SHARED / name), "--seed", str(seed)]
+            argv += ["--demos", select] if select else []
+            argv += ["--rollouts", str(settings.rollouts), "--samples", str(settings.samples)]
+            pending.append((task, seed, directory, argv + ["--out", str(directory)]))
+    with ProcessPoolExecutor(max_workers=args.jobs or os.cpu_count()) as pool:
+        futures = {pool.submit(_train_real, job[3]): job for job in pending}
+        for future, (task, seed, directory, _) in futures.items():
+            row = _real_row(task, seed, directory, future.result())
+            write_json(directory / "row.json", row)
+            print(json.dumps(row), flush=True)
+
+
+def real_rows(args: argparse.Namespace) -> list[dict]:
+    """The finished real-file runs of these seeds, task-major."""
+    files = [_real_dir(args, t, s) / "row.json" for t in REAL_TASKS for s in range(args.seeds)]
+    return [json.loads(file.read_text()) for file in files if file.is_file()]
+
+
+# ---------------------------------------------------------------------------------------------
+# Summaries.
+
+
+def _by_task(rows: Sequence[dict]) -> dict[tuple[str, str], list[dict]]:
+    groups: dict[tuple[str, str], list[dict]] = {}
+    for row in rows:
+        groups.setdefault((row["part"], row["task"]), []).append(row)
+    return groups
+
+
+def _cpu(row: dict) -> float:
+    return row.get("train_cpu_seconds") or row.get("train_and_check_cpu_seconds") or float("nan")
+
+
+def task_table(rows: Sequence[dict]) -> str:
+    """One line per task: its worst seed on each bar, and how far its seeds spread."""
+    lines = [
+        "| part | task | runs | all bars met | worst velocity error (relative) | worst / median "
+        "seed | lowest converged | violations | DTW (paper scale, mean) | CPU s (max) |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for (part, task), group in _by_task(rows).items():
+        errors = [r["velocity_error_relative"] for r in group]
+        met = sum(all(meets_bars(r).values()) for r in group)
+        lines.append(
+            f"| {part} | {task} | {len(group)} | {met} | {max(errors):.4f} | "
+            f"{max(errors) / statistics.median(errors):.2f} | "
+            f"{min(r['converged_fraction'] for r in group):.3f} | "
+            f"{sum(r['decrease_violations'] for r in group)} | "
+            f"{statistics.mean(r['dtw_paper'] for r in group):.3f} | "
+            f"{max(_cpu(r) for r in group):.1f} |"
+        )
+    return "\n".join(lines)
+
+
+def overall_table(rows: Sequence[dict]) -> str:
+    """One line per part: how many runs met each bar, and the worst figures."""
+    lines = [
+        "| part | runs | accuracy met | converged 1.0 | 0 violations | all bars | worst "
+        "velocity error (relative) | lowest converged | decrease samples checked |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for part in ("lasa", "real"):
+        group = [r for r in rows if r["part"] == part]
+        if not group:
+            continue
+        bars = [meets_bars(r) for r in group]
+        worst = max(group, key=lambda r: r["velocity_error_relative"])
+        lowest = min(group, key=lambda r: r["converged_fraction"])
+        lines.append(
+            f"| {part} | {len(group)} | {sum(b['accuracy'] for b in bars)} | "
+            f"{sum(b['converged'] for b in bars)} | {sum(b['no_violations'] for b in bars)} | "
+            f"{sum(all(b.values()) for b in bars)} | "
+            f"{worst['velocity_error_relative']:.4f} ({worst['task']}, seed {worst['seed']}) | "
+            f"{lowest['converged_fraction']:.3f} ({lowest['task']}, seed {lowest['seed']}) | "
+            f"{sum(r['samples_checked'] for r in group):,} |"
+        )
+    return "\n".join(lines)
+
+
+def write_results(rows: Sequence[dict], args: argparse.Namespace, settings: SweepSettings) -> None:
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    write_json(RESULTS / "rows.json", list(rows))
+    fields = list(dict.fromkeys(k for r in rows for k in r))
+    tmp = RESULTS / "rows.csv.tmp"
+    with tmp.open("w", newline="") as file:
+        writer = csv.DictWriter(file, fieldnames=fields)
+        writer.writeheader()
+        writer.writerows(rows)
+    os.replace(tmp, RESULTS / "rows.csv")
+    machine = f"{platform.machine()}, {os.cpu_count()} cores, {platform.platform()}"
+    header = (
+        f"Measured {datetime.date.today().isoformat()} on {machine} "
+        f"(`python benchmarks/reliability.py --seeds {args.seeds}`), two runs side by side, "
+        "one torch thread each. Bars: held-out velocity error at most "
+        f"{ACCURACY_BAR:g} of the velocities' mean square, converged 1.0 from "
+        f"{settings.rollouts} random starts in the 3x box, 0 violations in {settings.samples:,} "
+        "decrease samples in the 10x box (float64). Per task: "
+        "`results/reliability/summary.md`; rows: `results/reliability/rows.csv`."
+    )
+    body = f"{header}\n\n{overall_table(rows)}"
+    (RESULTS / "summary.md").write_text(f"{body}\n\n{task_table(rows)}\n")
+    if not args.no_readme:
+        write_readme_section("reliability", body)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--part", choices=["lasa", "real", "both"], default="both")
+    parser.add_argument("--motions", default="all", help="LASA motions or groups")
+    parser.add_argument("--seeds", type=int, default=5)
+    parser.add_argument("--rollouts", type=int, default=300, help="per run's stability check")
+    parser.add_argument("--samples", type=int, default=20_000, help="per run's decrease check")
+    parser.add_argument("--jobs", type=int, default=None, help="local processes (all cores)")
+    parser.add_argument("--runs", type=Path, default=Path("runs/reliability"))
+    parser.add_argument("--no-readme", action="store_true")
+    args = parser.parse_args()
+    settings = SweepSettings(rollouts=args.rollouts, samples=args.samples)
+    if args.part in ("real", "both"):
+        run_real(args, settings)
+    if args.part in ("lasa", "both"):
+        run_lasa(args, settings)
+    # The table holds every finished run of both parts, whichever part ran now.
+    write_results(lasa_rows(args) + real_rows(args), args, settings)
+
+
+if __name__ == "__main__":
+    main()
