@@ -33,8 +33,9 @@ def reproduce(policy: Policy, demos: Demonstrations, indices: list[int]) -> list
 
 
 def accuracy(policy: Policy, demos: Demonstrations, split: Split) -> dict[str, float]:
-    """Velocity MSE on the test samples (also relative to their mean squared speed); DTW, Frechet distance, swept error area (2-D only) and
-    final distance of the reproductions from the demonstrations' starts.
+    """Velocity MSE on the test samples (also relative to their mean squared speed); DTW,
+    Frechet distance, swept error area (2-D only) and final distance of the reproductions from
+    the demonstrations' starts.
 
     Both in user units and in the paper's scale (positions relative to the target divided by
     the largest distance of a demonstrated position from the target, velocities by the
