@@ -71,15 +71,9 @@ def _backends(policy, files: dict[str, Path], threads: int) -> dict[str, Callabl
         return run
 
     def onnx(path):
-        options = onnxruntime.SessionOptions()
-        options.intra_op_num_threads = threads
-        options.inter_op_num_threads = 1
-        options.graph_optimization_level = onnxruntime.GraphOptimizationLevel.ORT_ENABLE_ALL
-        session = onnxruntime.InferenceSession(
-            str(path), options, providers=["CPUExecutionProvider"]
-        )
-        name = session.get_inputs()[0].name
-        return lambda x: session.run(None, {name: x})[0]
+        # What a user gets from snds.export.load_onnx: one state through bound buffers, a
+        # batch split across the threads.
+        return export.load_onnx(path, threads=threads)
 
     def exported(x):
         with torch.inference_mode():
@@ -248,15 +242,16 @@ def main() -> None:
     if not args.no_readme:
         sizes = meta["architecture"] or {}
         header = (
-            f"Measured {meta['date']} on {meta['machine']} ({meta['processor']}), shared "
-            f"with other work (wall times are inflated by it; the CPU time of a one-thread "
+            f"Measured {meta['date']} on {meta['machine']} ({meta['processor']}) (on a "
+            "machine shared with other work wall times grow; the CPU time of a one-thread "
             f"call is what it takes on a free core): best of {args.rounds} rounds per row; "
             f"torch {meta['torch']}, onnxruntime {meta['onnxruntime']}; model `{args.model}` "
             f"({meta['motion'] or 'custom data'}; hidden {sizes.get('hidden')}, "
             f"{sizes.get('fourier_features')} Fourier features). The differences are the "
             "largest over 10,000 random states (up to 1000x the extent) of "
             "|exported - library| / max(|library|, top speed), the library in the export's "
-            "precision and in float64."
+            "precision and in float64. ONNX rows run `snds.export.load_onnx`: one state "
+            "through buffers bound to the session, a batch split across the threads."
         )
         write_readme_section(name, header + "\n\n" + body)
 

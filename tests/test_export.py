@@ -109,11 +109,49 @@ def test_verify_catches_a_model_that_computes_something_else(policy, onnx64) -> 
     assert not check.passed and check.max_error > 1e-3
 
 
+def test_float64_onnx_of_a_leaky_relu_network(tmp_path: Path) -> None:
+    # onnxruntime has no float64 LeakyRelu kernel: the export writes max(u, slope u) there
+    config = PolicyConfig(**{**SMALL.to_dict(), "activation": "leaky_relu"})
+    policy = make_policy(shifted_spiral(), config=config, seed=6, dtype=torch.float32).eval()
+    path = export.export_onnx(policy, tmp_path / "leaky.onnx", dtype=torch.float64)
+    check = export.verify(path, policy, samples=2_000)
+    assert check.passed and check.max_error <= 1e-12
+
+
+def test_onnx_runtime_paths_compute_one_function(policy, onnx64, monkeypatch) -> None:
+    # GIVEN the one-state path (bound buffers) and the threaded batch path of load_onnx
+    monkeypatch.setattr(export, "MIN_ROWS_PER_THREAD", 100)
+    x = export.random_states(policy, 1_001, seed=5)
+    plain = export.load_onnx(onnx64)
+    reference = plain.session.run(None, {plain.input_name: x})[0]
+    threaded = export.load_onnx(onnx64, threads=3)
+    # THEN a batch split over three threads (of unequal chunks) is the whole batch's result
+    np.testing.assert_array_equal(threaded(x), reference)
+    # and single states through the reused buffers are each their own row, not the last one
+    for i in (0, 7, 0, 1_000):
+        single = plain(x[i : i + 1])
+        assert single.shape == (1, 2)
+        np.testing.assert_array_equal(single, reference[i : i + 1])
+    held = plain(x[3:4])
+    plain(x[4:5])
+    np.testing.assert_array_equal(held, reference[3:4])  # a copy, not the bound buffer
+    with pytest.raises(export.ExportError, match="threads"):
+        export.load_onnx(onnx64, threads=0)
+
+
 def test_float32_onnx_agrees_to_float32_rounding(policy, tmp_path: Path) -> None:
     path = export.export_onnx(policy, tmp_path / "p32.onnx", dtype=torch.float32)
     check = export.verify(path, policy, samples=10_000)
     assert check.dtype == "float32" and check.passed
     assert check.max_error <= export.TOLERANCE[torch.float32]
+    # Held to no tolerance against the float32 library, it still passes by being as close
+    # to the exact policy as that library is; another policy's export does not.
+    strict = export.verify(path, policy, samples=2_000, tolerance=1e-12)
+    assert strict.max_error > 1e-12 and strict.passed
+    assert strict.max_error_float64 <= export.ROUNDING_SLACK * strict.library_error
+    other = make_policy(shifted_spiral(), config=SMALL, seed=4, dtype=torch.float32)
+    wrong = export.verify(path, other, samples=2_000, tolerance=1e-12)
+    assert not wrong.passed and wrong.max_error_float64 > 1e-3
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
@@ -278,8 +316,10 @@ def test_float64_pose_onnx_equals_the_library_twist(pose_policy, pose_onnx64) ->
             .double()
             .twist(torch.as_tensor(x[:, :3]), torch.as_tensor(x[:, 3:]))
         )
-    # THEN the twists agree to rounding, linear and angular blocks alike
+    # THEN the twists agree to rounding, linear and angular blocks alike, one pose at a
+    # time (bound buffers of 7 in, 6 out) too
     assert exported.shape == (10_000, 6)
+    np.testing.assert_array_equal(run(x[5:6]), exported[5:6])
     np.testing.assert_allclose(exported, library.numpy(), rtol=1e-10, atol=1e-9)
     check = export.verify(pose_onnx64, pose_policy, samples=10_000)
     assert check.passed and check.max_error <= 1e-9

@@ -623,7 +623,9 @@ def _export(args: argparse.Namespace) -> int:
         path.unlink(missing_ok=True)
         raise export.ExportError(
             f"{path}: outputs differ from the library's by {check.max_error:.2e} "
-            f"(relative), more than {check.tolerance:.0e}"
+            f"(relative), more than {check.tolerance:.0e}, and by {check.max_error_float64:.2e} "
+            f"from the exact (float64) policy, where the library in {check.dtype} is "
+            f"{check.library_error:.2e} from it"
         )
     if not args.quiet:
         print(

@@ -24,9 +24,11 @@ the library evaluated in the same precision.
 from __future__ import annotations
 
 import contextlib
+import copy
 import json
 import logging
 import math
+import threading
 import warnings
 import zipfile
 from collections.abc import Callable, Iterator
@@ -38,6 +40,7 @@ import torch
 
 from snds.errors import SNDSError
 from snds.io import atomic_write
+from snds.nn.mlp import FourierFeatures
 from snds.policy import Policy, StablePolicy, project
 from snds.se3 import PosePolicy
 
@@ -50,6 +53,11 @@ from snds.se3 import PosePolicy
 #: float32 implementations that order the sums differently (onnxruntime's kernels, torch's)
 #: differ by up to 1.4e-4 on the trained LASA models measured (benchmarks/README.md).
 TOLERANCE = {torch.float64: 1e-5, torch.float32: 3e-4}
+#: A float32 export also passes when it is no farther from the exact (float64) policy than
+#: this many times the float32 library itself: two float32 implementations may each be
+#: 8e-4 from the exact policy next to the target and differ from each other by as much (the
+#: compact network on Sine with the near-target decay; benchmarks/README.md).
+ROUNDING_SLACK = 1.25
 #: Spread of the random states of :func:`random_states`, in units of the demonstrations'
 #: extent: from near the data out to 1000x.
 STATE_RADII = (1.0, 3.0, 10.0, 100.0, 1000.0)
@@ -80,25 +88,60 @@ class _Exported(torch.nn.Module):
         self.policy = _copy(policy, dtype)
         self.folded = type(self.policy) is StablePolicy
         if self.folded:
-            zero = torch.zeros(1, self.policy.dim, dtype=dtype)
             with torch.no_grad():
-                self.register_buffer("f0", self.policy.nominal_net(zero)[0])
+                self.nominal = _fused_nominal(self.policy)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         policy = self.policy
         if not self.folded:
             return policy(x)
         z = policy.to_model(x)
-        field = policy.nominal_net(z) - self.f0
+        field = self.nominal(z)
         if policy.stable:
             v, grad_v = policy.lyapunov.value_and_grad(z)
             field = project(field, grad_v, policy.decay(v, z), policy.config.rectifier)
         return field * (policy.length / policy.time)
 
 
-def _copy(policy: Policy, dtype: torch.dtype) -> Policy:
-    import copy
+class _FourierInput(torch.nn.Module):
+    r"""Random Fourier features and the first linear layer as one map, with fewer nodes.
 
+    :math:`W [x; \sin 2\pi B x; \cos 2\pi B x] + b = W_x x + b + W_{sc} \sin(x P + c)`
+    with :math:`P = 2\pi [B, B]` and phases :math:`c = [0, \pi/2]`: one sine of twice the
+    width instead of a sine, a cosine and a concatenation (which alone took 1 ms of a batch of
+    10,000 states). The same function; its rounding differs from the library's by about an
+    ulp of the angles, which :func:`verify` bounds.
+    """
+
+    def __init__(self, features: FourierFeatures, linear: torch.nn.Linear) -> None:
+        super().__init__()
+        frequencies = (2 * math.pi) * features.frequencies.double()
+        n, m = frequencies.shape
+        dtype = linear.weight.dtype
+        self.register_buffer("angles", torch.cat([frequencies, frequencies], 1).to(dtype))
+        half_pi = torch.full((m,), math.pi / 2, dtype=torch.float64)
+        phases = torch.cat([torch.zeros_like(half_pi), half_pi]).to(dtype)
+        self.register_buffer("phases", phases)
+        self.register_buffer("w_x", linear.weight[:, :n].T.contiguous())
+        self.register_buffer("w_sc", linear.weight[:, n:].T.contiguous())
+        self.register_buffer("bias", linear.bias.clone())
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.sin(x @ self.angles + self.phases) @ self.w_sc + (x @ self.w_x + self.bias)
+
+
+def _fused_nominal(policy: StablePolicy) -> torch.nn.Sequential:
+    """f(x) - f(0) as one network: f(0) is folded into the last layer's bias, and Fourier
+    features into the first layer (:class:`_FourierInput`)."""
+    layers = [copy.deepcopy(layer) for layer in policy.nominal_net]
+    zero = torch.zeros(1, policy.dim, dtype=policy.center.dtype)
+    layers[-1].bias -= policy.nominal_net(zero)[0]
+    if isinstance(layers[0], FourierFeatures):
+        layers[:2] = [_FourierInput(layers[0], layers[1])]
+    return torch.nn.Sequential(*layers)
+
+
+def _copy(policy: Policy, dtype: torch.dtype) -> Policy:
     return copy.deepcopy(policy).to(device="cpu", dtype=dtype).eval()
 
 
@@ -316,6 +359,19 @@ def _softplus_onnx(self, beta: float = 1.0, threshold: float = 20.0):
     return op.Where(op.Greater(scaled, op.CastLike(threshold, self)), self, value)
 
 
+def _leaky_relu_onnx(self, negative_slope: float = 0.01):
+    # onnxruntime's LeakyRelu has no float64 kernel: there, max(u, slope u), the same for a
+    # slope below 1 (the ICNN's smooth leaky activation uses 0.1).
+    from onnxscript import ir
+    from onnxscript import opset18 as op
+
+    if self.dtype == ir.DataType.FLOAT:
+        return op.LeakyRelu(self, alpha=negative_slope)
+    # A float64 constant: CastLike of a Python number would round the slope to float32.
+    slope = op.Constant(value=ir.tensor(np.array(negative_slope, dtype=np.float64)))
+    return op.Max(self, op.Mul(self, slope))
+
+
 def export_onnx(policy: Policy, path: str | Path, *, dtype: torch.dtype = torch.float32) -> Path:
     """Exports a policy to ONNX (opset 18), with a dynamic batch dimension.
 
@@ -349,6 +405,7 @@ def export_onnx(policy: Policy, path: str | Path, *, dtype: torch.dtype = torch.
             verbose=False,
             custom_translation_table={
                 torch.ops.aten.softplus.default: _softplus_onnx,
+                torch.ops.aten.leaky_relu.default: _leaky_relu_onnx,
                 torch.ops.aten.scalar_tensor.default: _scalar_tensor_onnx,
                 torch.ops.aten.matmul.default: _matmul_onnx,
                 torch.ops.aten.atan2.default: _atan2_onnx,
@@ -445,35 +502,112 @@ def _atan2_float32(y, x):
 FORMATS: dict[str, Callable[..., Path]] = {"onnx": export_onnx, "pt2": export_pt2}
 
 
-def load_onnx(path: str | Path, *, threads: int = 1) -> Callable[[np.ndarray], np.ndarray]:
+#: Rows per thread below which :class:`OnnxPolicy` runs a batch whole: handing a chunk to a
+#: thread costs tens of microseconds.
+MIN_ROWS_PER_THREAD = 1024
+
+
+class OnnxPolicy:
+    """An exported policy in onnxruntime, as a function of NumPy positions (B, n).
+
+    Two paths, both with one-thread sessions:
+
+    * **One state per call** (the control loop) runs on input and output buffers bound to
+      the session once (onnxruntime's IO binding): the state is copied in, the velocity
+      copied out, and nothing else is allocated or converted; 5-6 us less per call than
+      ``session.run`` (measured, benchmarks/README.md).
+    * **Batches** of at least ``threads x`` :data:`MIN_ROWS_PER_THREAD` states are split into
+      ``threads`` contiguous chunks that run at the same time on the one session
+      (onnxruntime releases the GIL and lets several threads run a session). The graph is
+      mostly small element-wise operations, which onnxruntime's own intra-op threads do not
+      split: with them, two threads took 10.7 ms on 10,000 states of the compact network
+      where one took 11.6.
+
+    Arguments:
+        path: The ``.onnx`` file.
+        threads: Threads for large batches (1: every call on the caller's thread).
+
+    Raises:
+        ExportError: Without onnxruntime, or for a file it cannot load.
+    """
+
+    def __init__(self, path: str | Path, *, threads: int = 1) -> None:
+        try:
+            import onnxruntime as ort
+        except ImportError as error:
+            raise ExportError(
+                "running ONNX needs onnxruntime: pip install 'snds[export]'"
+            ) from error
+        if threads < 1:
+            raise ExportError(f"threads must be >= 1, got {threads}")
+        options = ort.SessionOptions()
+        options.intra_op_num_threads = 1
+        options.inter_op_num_threads = 1
+        options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+        try:
+            self.session = ort.InferenceSession(
+                str(path), options, providers=["CPUExecutionProvider"]
+            )
+        except Exception as error:  # onnxruntime raises its own exception types
+            raise ExportError(f"{path}: not a loadable ONNX model ({error})") from error
+        first = self.session.get_inputs()[0]
+        self.input_name = first.name
+        self.dtype = np.float64 if first.type == "tensor(double)" else np.float32
+        self.threads = threads
+        self._pool = None
+        self._lock = threading.Lock()
+        self._bound: tuple | None = None
+
+    def _bind(self, width: int):
+        """Binds a one-row input buffer and its output buffer to the session, once."""
+        import onnxruntime as ort
+
+        x = np.zeros((1, width), dtype=self.dtype)
+        y = self.session.run(None, {self.input_name: x})[0]
+        binding = self.session.io_binding()
+        binding.bind_ortvalue_input(self.input_name, ort.OrtValue.ortvalue_from_numpy(x))
+        output = self.session.get_outputs()[0].name
+        binding.bind_ortvalue_output(output, ort.OrtValue.ortvalue_from_numpy(y))
+        self._bound = (x, y, binding)
+        return self._bound
+
+    def _run(self, x: np.ndarray) -> np.ndarray:
+        return self.session.run(None, {self.input_name: x})[0]
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        """Velocities (B, m) at positions (B, n), in the file's precision."""
+        x = np.asarray(x, dtype=self.dtype)
+        if x.ndim == 2 and x.shape[0] == 1:
+            with self._lock:
+                bound = self._bound
+                if bound is None or bound[0].shape != x.shape:
+                    bound = self._bind(x.shape[1])
+                buffer, out, binding = bound
+                np.copyto(buffer, x)
+                self.session.run_with_iobinding(binding)
+                return out.copy()
+        if self.threads == 1 or x.ndim != 2 or len(x) < self.threads * MIN_ROWS_PER_THREAD:
+            return self._run(x)
+        if self._pool is None:
+            from concurrent.futures import ThreadPoolExecutor
+
+            self._pool = ThreadPoolExecutor(self.threads, thread_name_prefix="snds-onnx")
+        chunks = np.array_split(np.ascontiguousarray(x), self.threads)
+        return np.concatenate(list(self._pool.map(self._run, chunks)))
+
+
+def load_onnx(path: str | Path, *, threads: int = 1) -> OnnxPolicy:
     """An onnxruntime session of an exported policy, as a function of NumPy positions.
 
     Arguments:
         path: The ``.onnx`` file.
-        threads: Intra-op threads (1 is fastest for one state per call).
+        threads: Threads for large batches (see :class:`OnnxPolicy`).
 
     Returns:
-        A function from positions (B, n) to velocities (B, n), in the file's precision.
+        A function from positions (B, n) to velocities (B, n) (a pose file: poses (B, 7) to
+        twists (B, 6)), in the file's precision.
     """
-    try:
-        import onnxruntime as ort
-    except ImportError as error:
-        raise ExportError("running ONNX needs onnxruntime: pip install 'snds[export]'") from error
-    options = ort.SessionOptions()
-    options.intra_op_num_threads = threads
-    options.inter_op_num_threads = 1
-    options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-    try:
-        session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
-    except Exception as error:  # onnxruntime raises its own exception types
-        raise ExportError(f"{path}: not a loadable ONNX model ({error})") from error
-    name = session.get_inputs()[0].name
-    dtype = np.float64 if session.get_inputs()[0].type == "tensor(double)" else np.float32
-
-    def run(x: np.ndarray) -> np.ndarray:
-        return session.run(None, {name: np.asarray(x, dtype=dtype)})[0]
-
-    return run
+    return OnnxPolicy(path, threads=threads)
 
 
 def load_pt2(path: str | Path) -> Callable[[np.ndarray], np.ndarray]:
@@ -562,7 +696,9 @@ class Check:
         max_abs_diff_near: The same over the states within 3x the extent (a pose policy:
             whose position is).
         tolerance: The accepted ``max_error``.
-        passed: Whether ``max_error <= tolerance``.
+        passed: Whether ``max_error <= tolerance``, or, for a float32 export, whether
+            ``max_error_float64 <= max(tolerance, ROUNDING_SLACK * library_error)``: the
+            export is as close to the exact policy as the library in float32 is.
     """
 
     path: str
@@ -622,18 +758,23 @@ def verify(
     if not np.all(np.isfinite(exported)):
         max_error = math.inf
     limit = TOLERANCE[dtype] if tolerance is None else tolerance
+    max_error_float64 = _relative_error(exported, exact, policy)
+    library_error = _relative_error(reference, exact, policy)
+    passed = max_error <= limit or (
+        dtype == torch.float32 and max_error_float64 <= max(limit, ROUNDING_SLACK * library_error)
+    )
     return Check(
         path=str(path),
         dtype=str(dtype).removeprefix("torch."),
         samples=int(samples),
         seed=int(seed),
         max_error=max_error,
-        max_error_float64=_relative_error(exported, exact, policy),
-        library_error=_relative_error(reference, exact, policy),
+        max_error_float64=max_error_float64,
+        library_error=library_error,
         max_abs_diff=float(difference.max()) if difference.size else 0.0,
         max_abs_diff_near=float(difference[near].max()) if near.any() else 0.0,
         tolerance=float(limit),
-        passed=bool(max_error <= limit),
+        passed=bool(passed),
     )
 
 

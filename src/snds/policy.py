@@ -57,7 +57,7 @@ def project(f: Tensor, grad_v: Tensor, decay: Tensor, rectifier: str = "relu") -
     """
     norm2 = (grad_v * grad_v).sum(-1)
     excess = RECTIFIERS[rectifier]((grad_v * f).sum(-1) + decay)
-    safe = torch.where(norm2 > 0, norm2, torch.ones_like(norm2))
+    safe = torch.where(norm2 > 0, norm2, 1.0)
     return f - grad_v * (excess / safe).unsqueeze(-1)
 
 

@@ -87,12 +87,13 @@ class ICNN(nn.Module):
             slopes.append(slope)
         out = F.softplus(self.raw_out)
         value = z @ out + x @ self.linear_out
-        # Backward: e is dg/dz_k; delta = e * s'(u_k) is dg/du_k.
-        grad = self.linear_out.expand_as(x)
-        e = out.expand_as(slopes[-1])
+        # Backward: e is dg/dz_k; delta = e * s'(u_k) is dg/du_k. The output weights and the
+        # linear term broadcast over the batch (no expand: fewer nodes in an export).
+        grad = self.linear_out
+        e = out
         for k in range(len(self.skips) - 1, -1, -1):
             delta = e * slopes[k]
-            grad = grad + delta @ self.skips[k].weight
+            grad = delta @ self.skips[k].weight + grad
             if k > 0:
                 e = delta @ weights[k - 1]
         return value, grad

@@ -61,10 +61,13 @@ class Lyapunov(nn.Module):
         if at_target is None:
             # One pass over the batch and the target together: half the calls of two passes.
             n = x.shape[-1]
-            flat = x.reshape(-1, n)
+            # A batch (B, n), the usual case and an export's, needs no reshapes.
+            flat = x if x.dim() == 2 else x.reshape(-1, n)
             g, grad_g = self.icnn.value_and_grad(torch.cat([flat, flat.new_zeros(1, n)]))
             g0, grad_g0 = g[-1], grad_g[-1]
-            g, grad_g = g[:-1].reshape(x.shape[:-1]), grad_g[:-1].reshape(x.shape)
+            g, grad_g = g[:-1], grad_g[:-1]
+            if x.dim() != 2:
+                g, grad_g = g.reshape(x.shape[:-1]), grad_g.reshape(x.shape)
         else:
             g, grad_g = self.icnn.value_and_grad(x)
             g0, grad_g0 = at_target
