@@ -514,7 +514,7 @@ class OnnxPolicy:
 
     * **One state per call** (the control loop) runs on input and output buffers bound to
       the session once (onnxruntime's IO binding): the state is copied in, the velocity
-      copied out, and nothing else is allocated or converted; 5-6 us less per call than
+      copied out, and nothing else is allocated or converted; 3-6 us less per call than
       ``session.run`` (measured, benchmarks/README.md).
     * **Batches** of at least ``threads x`` :data:`MIN_ROWS_PER_THREAD` states are split into
       ``threads`` contiguous chunks that run at the same time on the one session
