@@ -170,7 +170,8 @@ def task_table(rows: Sequence[dict]) -> str:
     """One line per task: its worst seed on each bar, and how far its seeds spread."""
     lines = [
         "| part | task | runs | all bars met | worst velocity error (relative) | worst / median "
-        "seed | lowest converged | violations | DTW (paper scale, mean) | CPU s (max) |",
+        "seed | lowest converged | violations | DTW (paper scale, mean) | CPU s, max (lasa: "
+        "training; real: training and check) |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for (part, task), group in _by_task(rows).items():
