@@ -45,7 +45,7 @@ from snds.benchmark import (
     resolve_motions,
     run_sweep,
 )
-from snds.io import write_json
+from snds.io import atomic_write, write_json
 
 HERE = Path(__file__).resolve().parent
 SHARED = HERE.parent.parent / "shared" / "data"
@@ -217,12 +217,14 @@ def write_results(rows: Sequence[dict], args: argparse.Namespace, settings: Swee
     RESULTS.mkdir(parents=True, exist_ok=True)
     write_json(RESULTS / "rows.json", list(rows))
     fields = list(dict.fromkeys(k for r in rows for k in r))
-    tmp = RESULTS / "rows.csv.tmp"
-    with tmp.open("w", newline="") as file:
-        writer = csv.DictWriter(file, fieldnames=fields)
-        writer.writeheader()
-        writer.writerows(rows)
-    os.replace(tmp, RESULTS / "rows.csv")
+
+    def write_csv(tmp: Path) -> None:
+        with tmp.open("w", newline="") as file:
+            writer = csv.DictWriter(file, fieldnames=fields)
+            writer.writeheader()
+            writer.writerows(rows)
+
+    atomic_write(RESULTS / "rows.csv", write_csv)
     machine = f"{platform.machine()}, {os.cpu_count()} cores, {platform.platform()}"
     header = (
         f"Measured {datetime.date.today().isoformat()} on {machine} "

@@ -52,6 +52,7 @@ def accuracy(policy: Policy, demos: Demonstrations, split: Split) -> dict[str, f
     positions = np.concatenate([d.positions[m] for d, m in zip(demos, masks)])
     velocities = np.concatenate([d.velocities[m] for d, m in zip(demos, masks)])
     predicted = policy.predict(positions)
+    mse = velocity_mse(predicted, velocities)
     speed, extent = demos.max_speed(), demos.extent()
     indices = evaluation_demos(split)
     paths = reproduce(policy, demos, indices)
@@ -69,12 +70,11 @@ def accuracy(policy: Policy, demos: Demonstrations, split: Split) -> dict[str, f
         "frechet_paper": float(np.mean(frechets) / extent),
         "swept_area": float(np.mean(areas)),
         "swept_area_paper": float(np.mean(areas) / extent**2),
-        "velocity_mse": velocity_mse(predicted, velocities),
+        "velocity_mse": mse,
         "velocity_mse_paper": velocity_mse(predicted / speed, velocities / speed),
         # The share of the demonstrated velocities' energy the policy misses: scale-free, so
         # one bar fits every motion and unit (0: exact; 1: as bad as standing still).
-        "velocity_error_relative": velocity_mse(predicted, velocities)
-        / velocity_mse(np.zeros_like(velocities), velocities),
+        "velocity_error_relative": mse / velocity_mse(np.zeros_like(velocities), velocities),
         "velocity_mse_on": "test samples" if has_test else "training samples (no test split)",
         "dtw": float(np.mean(dtws)),
         "dtw_paper": float(np.mean(dtws) / extent),

@@ -563,7 +563,7 @@ class OnnxPolicy:
         import onnxruntime as ort
 
         x = np.zeros((1, width), dtype=self.dtype)
-        y = self.session.run(None, {self.input_name: x})[0]
+        y = self._run(x)
         binding = self.session.io_binding()
         binding.bind_ortvalue_input(self.input_name, ort.OrtValue.ortvalue_from_numpy(x))
         output = self.session.get_outputs()[0].name
