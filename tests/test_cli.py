@@ -45,6 +45,7 @@ def test_train_writes_model_metrics_and_config(trained):
     description = json.loads((trained / "model.json").read_text())
     assert description["train"]["steps"] == 150
     assert description["train"]["shape_weight"] == 0.0  # off for position models
+    assert description["train"]["nominal_weight"] == 0.01
     assert description["data"] == {"motion": "Sine", "demos": 3}
 
 

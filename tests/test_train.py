@@ -122,3 +122,57 @@ def test_shape_weight_rounds_v_and_keeps_the_fit(spiral):
             penalty = train_module.shape_penalty(policy.double(), 2, generator)
         penalties[weight] = float(penalty)
     assert penalties[1.0] < 0.5 * penalties[0.0]
+
+
+def _nominal_gradient(policy, samples, weight: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """d loss / d f at the training states (full batch), and grad V there."""
+    captured = {}
+
+    def keep(module, inputs, output):
+        output.retain_grad()
+        captured["out"] = output
+
+    handle = policy.nominal_net.register_forward_hook(keep)
+    config = TrainConfig(batch_size=0, nominal_weight=weight, dtype="float64")
+    loss = train_module._loss(policy, samples, config, torch.Generator().manual_seed(0))
+    loss.backward()
+    handle.remove()
+    # The nominal field is out[:-1] - out[-1] (the last row is the target), so d loss / d f
+    # is the gradient at the first rows.
+    grad_f = captured["out"].grad[:-1]
+    _, grad_v = policy.lyapunov.value_and_grad(samples.positions)
+    return grad_f, grad_v.detach()
+
+
+def test_nominal_term_reaches_what_the_projection_hides(spiral):
+    """Where the projection is active, the velocity term gives f's component along grad V no
+    gradient (the stall behind Leaf_2 seed 0's plateau); the nominal term gives it exactly
+    beta times the gradient of the velocity loss of f itself."""
+    from snds.losses import make_samples, velocity_loss
+
+    policy = make_policy(spiral)
+    samples = make_samples(spiral, policy.normalization, no_split(spiral), window=0).to(
+        torch.float64
+    )
+    with torch.no_grad():
+        pi, f = policy.field_and_nominal(samples.positions)
+        value, grad_v = policy.lyapunov.value_and_grad(samples.positions)
+        active = (grad_v * f).sum(-1) + policy.decay(value, samples.positions) > 0
+    assert 10 < int(active.sum()) < len(active)  # both kinds of states are tested
+    along = {}
+    for weight in (0.0, 0.25):
+        policy.zero_grad()
+        grad_f, grad_v = _nominal_gradient(policy, samples, weight)
+        along[weight] = (grad_f * grad_v).sum(-1)[active]
+    assert float(along[0.0].abs().max()) < 1e-12 * float(along[0.25].abs().max())
+    f_leaf = f.clone().requires_grad_(True)
+    (expected,) = torch.autograd.grad(velocity_loss(f_leaf, samples.velocities, "mse"), f_leaf)
+    expected_along = 0.25 * (expected * grad_v).sum(-1)[active]
+    torch.testing.assert_close(along[0.25], expected_along, rtol=1e-9, atol=1e-14)
+
+
+@pytest.mark.parametrize("name", ["nominal_weight", "shape_weight"])
+@pytest.mark.parametrize("value", [-0.1, float("nan"), float("inf")])
+def test_loss_weights_must_be_finite_and_non_negative(name, value):
+    with pytest.raises(train_module.ConfigError, match=name):
+        TrainConfig(**{name: value})

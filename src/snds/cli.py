@@ -147,6 +147,14 @@ def _build_parser() -> argparse.ArgumentParser:
         "--velocity-loss", choices=["mse", "srvf"], default=TrainConfig.velocity_shape
     )
     train.add_argument(
+        "--nominal-weight",
+        type=float,
+        default=TrainConfig.nominal_weight,
+        help="weight of the velocity term on the nominal field before the projection, which "
+        "keeps a fit from stalling where the projection hides f's gradient (0: the paper's "
+        "loss)",
+    )
+    train.add_argument(
         "--shape-weight",
         type=float,
         default=None,
@@ -373,6 +381,7 @@ def _train_settings(
         steps=args.steps,
         window=args.window,
         velocity_shape=args.velocity_loss,
+        nominal_weight=args.nominal_weight,
         shape_weight=shape_weight if args.shape_weight is None else args.shape_weight,
         seed=args.seed,
         device=args.device,

@@ -211,6 +211,10 @@ class Policy(nn.Module, ABC):
         """
         return self.field(x)
 
+    def field_and_nominal(self, x: Tensor) -> tuple[Tensor, Tensor | None]:
+        """The field, (*, n), and the nominal field it projects (None if it projects none)."""
+        return self.field(x), None
+
     def decay(self, v: Tensor, x: Tensor) -> Tensor:
         """The guaranteed decrease rate a(x) >= 0 of V, shape (*,); 0 by default.
 
@@ -322,11 +326,16 @@ class StablePolicy(Policy):
 
     def field(self, x: Tensor) -> Tensor:
         """The policy in model coordinates, (*, n) -> (*, n)."""
+        return self.field_and_nominal(x)[0]
+
+    def field_and_nominal(self, x: Tensor) -> tuple[Tensor, Tensor | None]:
+        """The policy and the nominal field it projects, both (*, n), from one pass of f
+        (None for the nominal of the unconstrained variant, which projects nothing)."""
         f = self.nominal(x)
         if not self.stable:
-            return f
+            return f, None
         v, grad_v = self.lyapunov.value_and_grad(x)
-        return project(f, grad_v, self.decay(v, x), self.config.rectifier)
+        return project(f, grad_v, self.decay(v, x), self.config.rectifier), f
 
 
 def float64_copy(policy: Policy) -> Policy:

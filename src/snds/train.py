@@ -45,6 +45,14 @@ class TrainConfig:
         velocity_shape: "mse" (the authors' code) or "srvf" (the paper).
         window: Nw, the Euler steps of the multi-step term (0: velocity term only).
         velocity_weight: gamma_0; the window terms have gamma_i = 2^-i.
+        nominal_weight: beta, the weight of a second velocity term on the nominal field f
+            itself. Where the projection is active (ReLU rectifier), pi does not depend on
+            f's component along grad V, so the velocity term gives that component no
+            gradient: an f that points uphill where the data go downhill is stuck there until
+            V moves, and a fit can stall on a plateau (LASA Leaf_2, seed 0: loss 0.020 from
+            step 600 to the end, held-out error 0.048 against 0.010-0.012 for the other seeds;
+            with beta = 0.01, 0.0085). The term keeps f near the data everywhere; the
+            guarantee is pi's and does not depend on it (0: off, the paper's loss).
         shape_weight: Weight of the penalty :math:`\operatorname{Var}_x \log(V(x) / |x|^2)`
             over 256 random states per step, uniform in :math:`[-2, 2]^n` (model
             coordinates): it keeps V's sublevel sets round where the data do not ask
@@ -72,6 +80,7 @@ class TrainConfig:
     velocity_shape: str = "mse"
     window: int = 0
     velocity_weight: float = 1.0
+    nominal_weight: float = 0.01
     shape_weight: float = 0.0
     patience: int = 0
     min_improvement: float = 1e-3
@@ -95,8 +104,10 @@ class TrainConfig:
                 f"window and batch sizes must be >= 0, got window {self.window}, batch_size "
                 f"{self.batch_size}, window_batch_size {self.window_batch_size}"
             )
-        if not (self.shape_weight >= 0 and math.isfinite(self.shape_weight)):
-            raise ConfigError(f"shape_weight must be a number >= 0, got {self.shape_weight}")
+        for name in ("nominal_weight", "shape_weight"):
+            weight = getattr(self, name)
+            if not (weight >= 0 and math.isfinite(weight)):
+                raise ConfigError(f"{name} must be a number >= 0, got {weight}")
         if not (self.lr > 0 and math.isfinite(self.lr)):
             raise ConfigError(f"lr must be a positive number, got {self.lr}")
         try:
@@ -422,7 +433,10 @@ def _loss(
     x, v = samples.positions, samples.velocities
     if index is not None:
         x, v = x[index], v[index]
-    loss = config.velocity_weight * velocity_loss(policy.field(x), v, config.velocity_shape)
+    pi, f = policy.field_and_nominal(x)
+    loss = config.velocity_weight * velocity_loss(pi, v, config.velocity_shape)
+    if config.nominal_weight and f is not None:
+        loss = loss + config.nominal_weight * velocity_loss(f, v, config.velocity_shape)
     if config.window and len(samples.window_starts):
         index = _batch(
             config.window_batch_size, len(samples.window_starts), generator, config.device
