@@ -171,7 +171,26 @@ def test_nominal_term_reaches_what_the_projection_hides(spiral):
     torch.testing.assert_close(along[0.25], expected_along, rtol=1e-9, atol=1e-14)
 
 
-@pytest.mark.parametrize("name", ["nominal_weight", "shape_weight"])
+def test_position_noise_perturbs_the_states_only(spiral):
+    from snds.losses import make_samples
+
+    policy = make_policy(spiral)
+    samples = make_samples(spiral, policy.normalization, no_split(spiral), window=0).to(
+        torch.float64
+    )
+    seen = []
+    handle = policy.nominal_net.register_forward_hook(lambda m, i, o: seen.append(i[0][:-1]))
+    for noise in (0.0, 0.05):
+        config = TrainConfig(batch_size=0, position_noise=noise, dtype="float64")
+        train_module._loss(policy, samples, config, torch.Generator().manual_seed(0))
+    handle.remove()
+    assert torch.equal(seen[0], samples.positions)
+    offsets = seen[1] - samples.positions
+    assert float(offsets.std()) == pytest.approx(0.05, rel=0.05)
+    assert abs(float(offsets.mean())) < 0.005
+
+
+@pytest.mark.parametrize("name", ["nominal_weight", "position_noise", "shape_weight"])
 @pytest.mark.parametrize("value", [-0.1, float("nan"), float("inf")])
 def test_loss_weights_must_be_finite_and_non_negative(name, value):
     with pytest.raises(train_module.ConfigError, match=name):

@@ -155,6 +155,14 @@ def _build_parser() -> argparse.ArgumentParser:
         "loss)",
     )
     train.add_argument(
+        "--position-noise",
+        type=float,
+        default=TrainConfig.position_noise,
+        help="standard deviation of noise added to the training states (model coordinates, "
+        "the data span about [-1, 1]), for demonstrations that run close together at "
+        "different speeds (default 0: off)",
+    )
+    train.add_argument(
         "--shape-weight",
         type=float,
         default=None,
@@ -382,6 +390,7 @@ def _train_settings(
         window=args.window,
         velocity_shape=args.velocity_loss,
         nominal_weight=args.nominal_weight,
+        position_noise=args.position_noise,
         shape_weight=shape_weight if args.shape_weight is None else args.shape_weight,
         seed=args.seed,
         device=args.device,

@@ -53,6 +53,12 @@ class TrainConfig:
             step 600 to the end, held-out error 0.048 against 0.010-0.012 for the other seeds;
             with beta = 0.01, 0.0085). The term keeps f near the data everywhere; the
             guarantee is pi's and does not depend on it (0: off, the paper's loss).
+        position_noise: Standard deviation of Gaussian noise added to the training states at
+            every step (model coordinates, where the data span about [-1, 1]); the
+            velocities stay as demonstrated. It smooths the fit where demonstrations run close
+            together at different speeds (Messy Snake, seed 2, held-out error 0.113 -> 0.085
+            at 0.003) but blurs sharp motions (LASA Saeghe, seed 0: 0.0125 -> 0.025), so it
+            is off by default (0).
         shape_weight: Weight of the penalty :math:`\operatorname{Var}_x \log(V(x) / |x|^2)`
             over 256 random states per step, uniform in :math:`[-2, 2]^n` (model
             coordinates): it keeps V's sublevel sets round where the data do not ask
@@ -81,6 +87,7 @@ class TrainConfig:
     window: int = 0
     velocity_weight: float = 1.0
     nominal_weight: float = 0.01
+    position_noise: float = 0.0
     shape_weight: float = 0.0
     patience: int = 0
     min_improvement: float = 1e-3
@@ -104,7 +111,7 @@ class TrainConfig:
                 f"window and batch sizes must be >= 0, got window {self.window}, batch_size "
                 f"{self.batch_size}, window_batch_size {self.window_batch_size}"
             )
-        for name in ("nominal_weight", "shape_weight"):
+        for name in ("nominal_weight", "position_noise", "shape_weight"):
             weight = getattr(self, name)
             if not (weight >= 0 and math.isfinite(weight)):
                 raise ConfigError(f"{name} must be a number >= 0, got {weight}")
@@ -433,6 +440,8 @@ def _loss(
     x, v = samples.positions, samples.velocities
     if index is not None:
         x, v = x[index], v[index]
+    if config.position_noise:
+        x = x + config.position_noise * torch.randn(x.shape, generator=generator).to(x)
     pi, f = policy.field_and_nominal(x)
     loss = config.velocity_weight * velocity_loss(pi, v, config.velocity_shape)
     if config.nominal_weight and f is not None:
