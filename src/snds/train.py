@@ -51,14 +51,15 @@ class TrainConfig:
             gradient: an f that points uphill where the data go downhill is stuck there until
             V moves, and a fit can stall on a plateau (LASA Leaf_2, seed 0: loss 0.020 from
             step 600 to the end, held-out error 0.048 against 0.010-0.012 for the other seeds;
-            with beta = 0.01, 0.0085). The term keeps f near the data everywhere; the
-            guarantee is pi's and does not depend on it (0: off, the paper's loss).
+            with beta = 0.01, 0.0086 and the other seeds 0.0093-0.0106). The term keeps f
+            near the data everywhere; the guarantee is pi's and does not depend on it (0: off,
+            the paper's loss).
         position_noise: Standard deviation of Gaussian noise added to the training states at
             every step (model coordinates, where the data span about [-1, 1]); the
             velocities stay as demonstrated. It smooths the fit where demonstrations run close
-            together at different speeds (Messy Snake, seed 2, held-out error 0.113 -> 0.085
-            at 0.003) but blurs sharp motions (LASA Saeghe, seed 0: 0.0125 -> 0.025), so it
-            is off by default (0).
+            together at different speeds (Messy Snake, seed 2, held-out error 0.115 -> 0.085
+            at 0.003) but blurs sharp motions (LASA Saeghe, seed 0: 0.012 -> 0.025;
+            benchmarks/messy_snake.py), so it is off by default (0).
         shape_weight: Weight of the penalty :math:`\operatorname{Var}_x \log(V(x) / |x|^2)`
             over 256 random states per step, uniform in :math:`[-2, 2]^n` (model
             coordinates): it keeps V's sublevel sets round where the data do not ask
