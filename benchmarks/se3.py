@@ -68,8 +68,14 @@ def _write(part: str, row: dict | None, header: str, columns: list[tuple[str, st
         key = "-".join(str(row[k]) for k in ("task", "method", "fourier_scale") if k in row)
         (folder / f"{key.replace(' ', '_')}.json").write_text(json.dumps(row, indent=2) + "\n")
     rows = [json.loads(path.read_text()) for path in folder.glob("*.json")]
+    # arm3d rows are all SNDS and carry no method.
     rows.sort(
-        key=lambda r: (r["order"], -r.get("fourier_scale", 0), r["method"] == "bc", r["method"])
+        key=lambda r: (
+            r["order"],
+            -r.get("fourier_scale", 0),
+            r.get("method") == "bc",
+            r.get("method", "snds"),
+        )
     )
     out = HERE / "results"
     (out / f"{part}.json").write_text(json.dumps(rows, indent=2) + "\n")
