@@ -40,6 +40,7 @@ from scipy.spatial import cKDTree
 from snds.data import Normalization, load_demonstrations, load_lasa, split_samples
 from snds.data.demonstrations import Demonstrations, Split
 from snds.evaluate import evaluate
+from snds.metrics import velocity_mse
 from snds.policy import PolicyConfig, StablePolicy, float64_copy, project
 from snds.train import TrainConfig, fit
 
@@ -68,7 +69,8 @@ def _samples(demos: Demonstrations, masks) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _relative(predicted: np.ndarray, velocities: np.ndarray) -> float:
-    return float(((predicted - velocities) ** 2).sum(-1).mean() / (velocities**2).sum(-1).mean())
+    """The reliability sweep's figure (``velocity_error_relative`` of :func:`evaluate`)."""
+    return velocity_mse(predicted, velocities) / velocity_mse(np.zeros_like(velocities), velocities)
 
 
 def data_floors(demos: Demonstrations, split: Split) -> dict[str, float]:
@@ -80,11 +82,13 @@ def data_floors(demos: Demonstrations, split: Split) -> dict[str, float]:
     _, index = cKDTree(x).query(xt, k=8)
     knn = {k: _relative(v[index[:, :k]].mean(1), vt) for k in (1, 2, 4, 8)}
     ridge = {}
+    squared = ((x[:, None] - x[None]) ** 2).sum(-1)
+    squared_cross = ((xt[:, None] - x[None]) ** 2).sum(-1)
     for width in (0.01, 0.02, 0.04):
+        gram = np.exp(-squared / (2 * width**2))
+        cross = np.exp(-squared_cross / (2 * width**2))
         for penalty in (1e-3, 1e-1):
-            gram = np.exp(-((x[:, None] - x[None]) ** 2).sum(-1) / (2 * width**2))
             weights = np.linalg.solve(gram + penalty * np.eye(len(x)), v)
-            cross = np.exp(-((xt[:, None] - x[None]) ** 2).sum(-1) / (2 * width**2))
             ridge[(width, penalty)] = _relative(cross @ weights, vt)
     best_k, best_ridge = min(knn, key=knn.get), min(ridge, key=ridge.get)
     return {
