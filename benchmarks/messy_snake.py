@@ -13,7 +13,9 @@ on the same splits:
 - **the convex V's floor**: the error that remains when the demonstrated velocities
   themselves are projected with the V of the default model (a perfect nominal field);
 - **variants of training**, one seed each: BC (no projection), the paper's loss
-  (``nominal_weight=0``), a slower required decay, noise on the training states.
+  (``nominal_weight=0``), a slower required decay, noise on the training states, and a V
+  warped by a learned diffeomorphism (``warp_layers``), with what each costs in stiffness
+  (the stability check's largest safe Euler step, and how long its rollouts take to arrive).
 
     python benchmarks/messy_snake.py [--seeds 0 2]
 
@@ -28,6 +30,7 @@ import datetime
 import json
 import os
 import platform
+import statistics
 import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -57,6 +60,8 @@ VARIANTS: dict[str, tuple[dict, dict]] = {
     "position noise 0.003": ({}, {"position_noise": 0.003}),
     "decay rate 0.15, noise 0.0015": ({"decay_rate": 0.15}, {"position_noise": 0.0015}),
     "decay rate 0.15, noise 0.003": ({"decay_rate": 0.15}, {"position_noise": 0.003}),
+    "warped V (6 layers)": ({"warp_layers": 6}, {}),
+    "warped V (6 layers), noise 0.0015": ({"warp_layers": 6}, {"position_noise": 0.0015}),
 }
 #: LASA motions on which the noise's cost is measured (seed 0).
 LASA_CHECK = ("Sine", "Saeghe")
@@ -145,6 +150,8 @@ def run_variant(
         "dtw_paper": metrics["dtw_paper"],
         "converged_fraction": metrics["stability"]["converged_fraction"],
         "decrease_violations": metrics["stability"]["decrease_violations"],
+        "largest_safe_dt": metrics["stability"]["largest_safe_dt"],
+        "median_time_to_converge": metrics["stability"]["median_time_to_converge"],
         "train_cpu_seconds": cpu,
     }
     if task == "Messy_snake" and variant == "default":
@@ -155,8 +162,9 @@ def run_variant(
 def _table(rows: list[dict], floors: dict[int, dict], seeds: list[int]) -> list[str]:
     lines = [
         "| variant | " + " | ".join(f"seed {s}: test / train error" for s in seeds) + " | "
-        "converged (worst) | violations |",
-        "|---|" + "---|" * len(seeds) + "---|---|",
+        "converged (worst) | violations | largest safe step [s] (worst) | median time to "
+        "converge [s] (worst) | train CPU [s] (mean) |",
+        "|---|" + "---|" * len(seeds) + "---|---|---|---|---|",
     ]
     for variant in VARIANTS:
         mine = {r["seed"]: r for r in rows if r["variant"] == variant}
@@ -165,19 +173,27 @@ def _table(rows: list[dict], floors: dict[int, dict], seeds: list[int]) -> list[
         stable = list(mine.values()) if VARIANTS[variant][0].get("stable", True) else []
         converged = f"{min(r['converged_fraction'] for r in stable):.3f}" if stable else "-"
         violations = str(sum(r["decrease_violations"] for r in stable)) if stable else "-"
-        lines.append(f"| {variant} | " + " | ".join(cells) + f" | {converged} | {violations} |")
+        safe = f"{min(r['largest_safe_dt'] for r in stable):.1e}" if stable else "-"
+        slowest = f"{max(r['median_time_to_converge'] for r in stable):.1f}" if stable else "-"
+        cpu = statistics.mean(r["train_cpu_seconds"] for r in mine.values())
+        lines.append(
+            f"| {variant} | " + " | ".join(cells) + f" | {converged} | {violations} | {safe} | "
+            f"{slowest} | {cpu:.0f} |"
+        )
     for key, label in (
         ("knn", "k-NN, best k (on the test samples)"),
         ("kernel_ridge", "kernel ridge, best width / penalty (on the test samples)"),
     ):
         lines.append(
-            f"| {label} | " + " | ".join(f"{floors[s][key]:.3f} / -" for s in seeds) + " | - | - |"
+            f"| {label} | "
+            + " | ".join(f"{floors[s][key]:.3f} / -" for s in seeds)
+            + " | - | - | - | - | - |"
         )
     defaults = {r["seed"]: r["convex_floor"] for r in rows if "convex_floor" in r}
     lines.append(
         "| demonstrated velocities projected with the default's V | "
         + " | ".join(f"{defaults[s]['test']:.3f} / {defaults[s]['train']:.3f}" for s in seeds)
-        + " | - | - |"
+        + " | - | - | - | - | - |"
     )
     return lines
 

@@ -406,3 +406,25 @@ def test_cli_export_of_a_pose_model(pose_policy, tmp_path: Path, capsys) -> None
     check = json.loads((tmp_path / "pose" / "policy.pt2.check.json").read_text())
     assert check["passed"] and check["samples"] == 1000
     assert "poses (B, 7" in capsys.readouterr().out
+
+
+def _warped_policy():
+    config = PolicyConfig(**{**SMALL.to_dict(), "warp_layers": 3})
+    policy = make_policy(shifted_spiral(), config=config, seed=6, dtype=torch.float64).eval()
+    with torch.no_grad():  # a warp away from the identity, as after training
+        for p in policy.lyapunov.warp.parameters():
+            p.add_(torch.randn_like(p))
+    return policy
+
+
+def test_a_warped_policy_exports_exactly_to_pt2(tmp_path: Path) -> None:
+    policy = _warped_policy()
+    path = export.export_pt2(policy, tmp_path / "warped.pt2", dtype=torch.float64)
+    check = export.verify(path, policy, samples=2_000)
+    assert check.passed and check.max_error <= 1e-9
+
+
+def test_a_warped_policy_is_refused_by_onnx_export_before_any_file(tmp_path: Path) -> None:
+    with pytest.raises(export.ExportError, match=r"warped V .* export to \.pt2 instead"):
+        export.export_onnx(_warped_policy(), tmp_path / "warped.onnx")
+    assert not any(tmp_path.iterdir())

@@ -122,3 +122,16 @@ def test_a_model_saved_before_the_near_target_decay_loads_without_it(saved, spir
     x = torch.randn(1000, 2, dtype=torch.float64) * 0.3
     assert torch.equal(old(x), loaded(x))
     assert not torch.equal(policy(x), loaded(x))
+
+
+def test_a_warped_policy_round_trips_and_records_its_warp(spiral, tmp_path):
+    config = dataclasses.replace(make_policy(spiral).config, warp_layers=3)
+    policy = make_policy(spiral, config, seed=12)
+    with torch.no_grad():  # a warp away from the identity, as after training
+        for p in policy.lyapunov.warp.parameters():
+            p.add_(torch.randn_like(p))
+    save_model(policy, tmp_path / "warped")
+    loaded, description = load_model(tmp_path / "warped")
+    x = torch.randn(1000, 2, dtype=torch.float64) * 20
+    assert torch.equal(policy(x), loaded(x))
+    assert description["policy"]["warp_layers"] == 3

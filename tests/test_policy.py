@@ -17,11 +17,14 @@ def _scrambled(policy):
     return policy
 
 
+@pytest.mark.parametrize("warp_layers", [0, 3])
 @pytest.mark.parametrize("rectifier", list(RECTIFIERS))
 @pytest.mark.parametrize("scale", [1e-3, 1.0, 1e3])
-def test_decrease_holds_at_random_and_far_points(spiral, rectifier, scale):
-    # GIVEN a stable policy with arbitrary weights, in float64
-    config = dataclasses.replace(SMALL, rectifier=rectifier, decay_rate=0.5)
+def test_decrease_holds_at_random_and_far_points(spiral, rectifier, scale, warp_layers):
+    # GIVEN a stable policy with arbitrary weights, in float64, with a convex or warped V
+    config = dataclasses.replace(
+        SMALL, rectifier=rectifier, decay_rate=0.5, warp_layers=warp_layers
+    )
     policy = _scrambled(make_policy(spiral, config, seed=1))
     # WHEN it is evaluated at states up to 1e3 times the data's extent
     x = scale * torch.randn(20_000, 2, dtype=torch.float64)
@@ -43,8 +46,10 @@ def test_relaxed_mode_only_promises_non_increase(spiral):
     assert (lhs <= 1e-12).all()
 
 
-def test_target_is_an_equilibrium(spiral):
-    policy = _scrambled(make_policy(spiral, seed=3))
+@pytest.mark.parametrize("warp_layers", [0, 3])
+def test_target_is_an_equilibrium(spiral, warp_layers):
+    config = dataclasses.replace(SMALL, warp_layers=warp_layers)
+    policy = _scrambled(make_policy(spiral, config, seed=3))
     target = torch.tensor(spiral.target).unsqueeze(0)
     assert policy(target).abs().max().item() == 0.0
     # and continuous there: the speed shrinks in proportion to the distance to the target
@@ -118,12 +123,14 @@ def test_a_policy_subclass_gets_units_and_a_default_zero_decay():
     assert torch.equal(policy.decay(v, torch.zeros(3, 2)), torch.zeros(3, dtype=torch.float64))
 
 
+@pytest.mark.parametrize("warp_layers", [0, 3])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_no_velocity_spike_at_or_next_to_the_target(spiral, dtype):
-    # GIVEN a policy whose V is a Bregman difference of O(1) terms, and states at the target
-    # and within rounding distance of it, inside a batch (where the target's row and the
-    # reference row g(0) round differently)
-    policy = _scrambled(make_policy(spiral, seed=4)).to(dtype)
+def test_no_velocity_spike_at_or_next_to_the_target(spiral, dtype, warp_layers):
+    # GIVEN a policy whose V is a Bregman difference of O(1) terms (of a warp that shifts the
+    # target by O(1)), and states at the target and within rounding distance of it, inside a
+    # batch (where the target's row and the reference row g(0) round differently)
+    config = dataclasses.replace(SMALL, warp_layers=warp_layers)
+    policy = _scrambled(make_policy(spiral, config, seed=4)).to(dtype)
     eps = torch.finfo(dtype).eps
     near = torch.cat(
         [

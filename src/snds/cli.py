@@ -189,6 +189,14 @@ def _build_parser() -> argparse.ArgumentParser:
         default=PolicyConfig.decay_near,
         help="extra decay rate at the target, fading out at 0.2 of the extent (0: off)",
     )
+    train.add_argument(
+        "--warp-layers",
+        type=int,
+        default=PolicyConfig.warp_layers,
+        help="coupling layers of a learned warp inside V, for demonstrations that wind back "
+        "and forth (0: off, V convex; stiffer fields and ~3x training time, see "
+        "benchmarks/README.md)",
+    )
     train.add_argument("--unconstrained", action="store_true", help="behavioural cloning")
     train.add_argument(
         "--architecture",
@@ -423,6 +431,7 @@ def _policy_config(args: argparse.Namespace) -> PolicyConfig:
         decay_rate=args.decay_rate,
         decay_far=args.decay_far,
         decay_near=args.decay_near,
+        warp_layers=args.warp_layers,
         stable=not args.unconstrained,
     )
 

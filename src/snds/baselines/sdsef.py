@@ -42,6 +42,7 @@ from torch import Tensor, nn
 from snds.data.demonstrations import Demonstrations, Normalization, Split
 from snds.errors import DataError
 from snds.method import Fitted, Method, train_network
+from snds.nn.flow import EuclideanizingFlow, LayerCache
 from snds.policy import Policy
 from snds.train import TrainConfig
 
@@ -89,219 +90,6 @@ class SDSEFConfig:
         return asdict(self)
 
 
-@dataclass
-class _LayerCache:
-    """What a coupling layer's Jacobian needs from its forward pass (B rows)."""
-
-    stretched: Tensor  # (B, n) x * exp(s), x the layer's input
-    angles: Tensor  # (B, m) the Fourier angles
-    stretch: Tensor  # (B, n) exp(s), 1 on the conditioning coordinates
-    slope: Tensor  # (B, n) ds/d(raw s) = 1 - tanh^2
-
-
-class RFFCoupling(nn.Module):
-    r"""One affine coupling layer with random-Fourier-feature conditioners.
-
-    A fixed split of the coordinates into a conditioning part :math:`x_a` (kept) and a
-    transformed part :math:`x_b`:
-
-    .. math::
-
-        y_a = x_a, \qquad y_b = x_b \odot e^{s(x_a)} + t(x_a), \qquad
-        [s_{raw}, t] = h(x_a) W + c, \qquad s = S \tanh(s_{raw} / S),
-
-    with :math:`h(u) = \sqrt{2/m} \cos(2 \pi u \Omega + \beta)`, :math:`\Omega` and
-    :math:`\beta` fixed random buffers. Its inverse is :math:`x_b = (y_b - t(y_a)) \odot
-    e^{-s(y_a)}`, so the layer is a bijection of :math:`\mathbb{R}^n` onto itself (for any
-    weights), and its Jacobian is block lower triangular with a positive diagonal
-    :math:`e^{s}`:
-
-    .. math:: J = \begin{pmatrix} I & 0 \\ C & \mathrm{diag}(e^s) \end{pmatrix}, \qquad
-        C = \mathrm{diag}(x_b \odot e^s) \, \partial s / \partial x_a
-            + \partial t / \partial x_a.
-
-    The split is written with masks rather than gathers (fewer, larger tensor operations):
-    the rows of :math:`\Omega` for :math:`x_b` are zero, so :math:`h` sees only :math:`x_a`,
-    and s and t are zeroed on :math:`x_a`. W starts at zero, so the layer starts as the
-    identity.
-
-    Arguments:
-        dim: State dimension n >= 2.
-        layer: Index of the layer; the split rotates the coordinates by it, so that in a
-            stack every coordinate is both transformed and conditioned on.
-        features: m, the number of random features.
-        scale: Standard deviation of :math:`\Omega`, in cycles per unit.
-        max_log_scale: S (0: additive coupling, s = 0).
-        generator: Source of the random buffers.
-    """
-
-    def __init__(
-        self,
-        dim: int,
-        layer: int,
-        *,
-        features: int,
-        scale: float,
-        max_log_scale: float,
-        generator: torch.Generator,
-    ) -> None:
-        super().__init__()
-        conditioning = torch.roll(torch.arange(dim), -layer)[: dim // 2]
-        mask = torch.zeros(dim)
-        mask[conditioning] = 1.0
-        # Derived from (dim, layer), so not saved: a model file rebuilds it from the config.
-        self.register_buffer("transformed", 1.0 - mask, persistent=False)
-        self.dim = dim
-        self.max_log_scale = max_log_scale
-        self.affine = max_log_scale > 0
-        frequencies = torch.randn(dim, features, generator=generator) * (2 * math.pi * scale)
-        self.register_buffer("frequencies", frequencies * mask.unsqueeze(-1))
-        self.register_buffer("phases", torch.rand(features, generator=generator) * 2 * math.pi)
-        self.amplitude = math.sqrt(2.0 / features)
-        # Columns [0, n) give s_raw and [n, 2n) give t (only t, n columns, if additive);
-        # those of x_a are masked out (and so get no gradient).
-        outputs = 2 * dim if self.affine else dim
-        self.weight = nn.Parameter(torch.zeros(features, outputs))
-        self.bias = nn.Parameter(torch.zeros(outputs))
-
-    def _conditioner(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """s, t (each (B, n), zero on x_a), the slope 1 - tanh^2 of s (B, n) and the Fourier
-        angles (B, m)."""
-        # Masking W's columns (not the (B, n) outputs) zeroes s and t on x_a at the cost of
-        # one small product per call, and those columns then get no gradient.
-        columns = self._columns()
-        angles = torch.addmm(self.phases, x, self.frequencies)
-        raw = torch.addmm(
-            self.bias * columns, torch.cos(angles), self.weight * columns, alpha=self.amplitude
-        )
-        if not self.affine:
-            return torch.zeros_like(x), raw, torch.zeros_like(x), angles
-        squashed = torch.tanh(raw[:, : self.dim] / self.max_log_scale)
-        return (
-            self.max_log_scale * squashed,
-            raw[:, self.dim :],
-            1.0 - squashed * squashed,
-            angles,
-        )
-
-    def forward(self, x: Tensor) -> tuple[Tensor, _LayerCache]:
-        """Maps states (B, n) to (B, n) and keeps what the Jacobian needs."""
-        s, t, slope, angles = self._conditioner(x)
-        stretch = torch.exp(s)
-        stretched = x * stretch
-        return stretched + t, _LayerCache(stretched, angles, stretch, slope)
-
-    def inverse(self, y: Tensor) -> Tensor:
-        """The inverse map, (B, n) -> (B, n): :math:`x_b = (y_b - t(y_a)) e^{-s(y_a)}`."""
-        s, t, _, _ = self._conditioner(y)
-        return (y - t) * torch.exp(-s)
-
-    def _c_times(self, cache: _LayerCache, w: Tensor) -> Tensor:
-        """C w_a, shape (B, n), zero on x_a; only w_a matters (Omega's x_b rows are zero)."""
-        # sin is computed here, not in forward: evaluating phi or V alone does not need it.
-        d_features = torch.sin(cache.angles) * (w @ self.frequencies)
-        d_raw = (d_features @ self.weight) * (-self.amplitude * self._columns())
-        if not self.affine:
-            return d_raw
-        return cache.stretched * cache.slope * d_raw[:, : self.dim] + d_raw[:, self.dim :]
-
-    def _columns(self) -> Tensor:
-        """Mask of W's columns that act on x_b, shape (2n,), or (n,) if additive."""
-        if not self.affine:
-            return self.transformed
-        return torch.cat([self.transformed, self.transformed])
-
-    def jvp(self, cache: _LayerCache, w: Tensor) -> Tensor:
-        """J w for tangents w (B, n) at the layer's input: :math:`(w_a, e^s w_b + C w_a)`."""
-        return cache.stretch * w + self._c_times(cache, w)
-
-    def solve(self, cache: _LayerCache, v: Tensor) -> Tensor:
-        r"""J^{-1} v for v (B, n) by forward substitution: :math:`w_a = v_a`,
-        :math:`w_b = e^{-s} (v_b - C v_a)`."""
-        return (v - self._c_times(cache, v)) / cache.stretch
-
-    def vjp(self, cache: _LayerCache, g: Tensor) -> Tensor:
-        r"""J^T g for cotangents g (B, n): :math:`(g_a + C^\top g_b, e^s g_b)`."""
-        grad_raw = torch.cat([g * cache.stretched * cache.slope, g], -1) if self.affine else g
-        weight = self.weight * (-self.amplitude * self._columns())
-        d_features = torch.sin(cache.angles) * (grad_raw @ weight.T)
-        return cache.stretch * g + d_features @ self.frequencies.T
-
-
-class EuclideanizingFlow(nn.Module):
-    r"""The diffeomorphism :math:`\phi = \ell_L \circ \dots \circ \ell_1` of coupling layers.
-
-    With :math:`J = J_L \cdots J_1` (each :math:`J_l` at the layer's own input),
-    :math:`J^{-1} v = J_1^{-1} \cdots J_L^{-1} v` and :math:`J^\top g = J_1^\top \cdots
-    J_L^\top g` are one triangular step per layer, from the last to the first.
-    :math:`\det J = \prod_l \prod e^{s_l} > 0` everywhere.
-
-    Arguments:
-        dim: State dimension n >= 2.
-        config: The architecture.
-        seed: Seed of the random Fourier buffers.
-    """
-
-    def __init__(self, dim: int, config: SDSEFConfig, seed: int = 0) -> None:
-        super().__init__()
-        generator = torch.Generator().manual_seed(seed)
-        self.layers = nn.ModuleList(
-            RFFCoupling(
-                dim,
-                layer,
-                features=config.features,
-                scale=config.fourier_scale,
-                max_log_scale=config.max_log_scale,
-                generator=generator,
-            )
-            for layer in range(config.layers)
-        )
-
-    def forward_with_caches(self, x: Tensor) -> tuple[Tensor, list[_LayerCache]]:
-        """:math:`\\phi(x)` for states (B, n), and each layer's Jacobian cache."""
-        caches = []
-        for layer in self.layers:
-            x, cache = layer(x)
-            caches.append(cache)
-        return x, caches
-
-    def forward(self, x: Tensor) -> Tensor:
-        """:math:`\\phi(x)`, (B, n) -> (B, n)."""
-        return self.forward_with_caches(x)[0]
-
-    def inverse(self, y: Tensor) -> Tensor:
-        r""":math:`\phi^{-1}(y)`, (B, n) -> (B, n)."""
-        for layer in reversed(self.layers):
-            y = layer.inverse(y)
-        return y
-
-    def solve(self, caches: list[_LayerCache], v: Tensor) -> Tensor:
-        """:math:`J_\\phi^{-1} v` for v (B, n), with the caches of :meth:`forward_with_caches`."""
-        for layer, cache in zip(reversed(self.layers), reversed(caches)):
-            v = layer.solve(cache, v)
-        return v
-
-    def vjp(self, caches: list[_LayerCache], g: Tensor) -> Tensor:
-        """:math:`J_\\phi^\\top g` for g (B, n)."""
-        for layer, cache in zip(reversed(self.layers), reversed(caches)):
-            g = layer.vjp(cache, g)
-        return g
-
-    def jvp(self, caches: list[_LayerCache], w: Tensor) -> Tensor:
-        """:math:`J_\\phi w` for w (B, n)."""
-        for layer, cache in zip(self.layers, caches):
-            w = layer.jvp(cache, w)
-        return w
-
-    def jacobian(self, x: Tensor) -> Tensor:
-        """The full Jacobian :math:`J_\\phi(x)`, shape (B, n, n), from n Jacobian-vector
-        products (for tests and analysis; the policy never forms it)."""
-        _, caches = self.forward_with_caches(x)
-        eye = torch.eye(x.shape[-1], dtype=x.dtype, device=x.device)
-        columns = [self.jvp(caches, e.expand_as(x)) for e in eye]
-        return torch.stack(columns, dim=-1)
-
-
 class FlowLyapunov(nn.Module):
     r""":math:`V(x) = \|\phi(x) - \phi(0)\|^2` and its analytic gradient.
 
@@ -322,7 +110,7 @@ class FlowLyapunov(nn.Module):
         super().__init__()
         self.flow = flow
 
-    def latent(self, x: Tensor) -> tuple[Tensor, list[_LayerCache]]:
+    def latent(self, x: Tensor) -> tuple[Tensor, list[LayerCache]]:
         r""":math:`e = \phi(x) - \phi(0)` for states (B, n), with a zero last row added.
 
         The target goes through the flow in the same batch as the states, so that a state at
@@ -444,7 +232,15 @@ class SDSEFPolicy(Policy):
         self.config = config
         # The flow lives only inside the Lyapunov function, so that its tensors are saved once
         # (safetensors refuses shared tensors under two names).
-        self.lyapunov = FlowLyapunov(EuclideanizingFlow(dim, config, seed=seed))
+        flow = EuclideanizingFlow(
+            dim,
+            layers=config.layers,
+            features=config.features,
+            scale=config.fourier_scale,
+            max_log_scale=config.max_log_scale,
+            seed=seed,
+        )
+        self.lyapunov = FlowLyapunov(flow)
         self.gain = SpeedGain(dim, config, torch.Generator().manual_seed(seed + 1))
 
     @property

@@ -1,10 +1,11 @@
-r"""A Lyapunov function that is positive definite by construction."""
+r"""Lyapunov functions that are positive definite by construction: convex, or warped."""
 
 from __future__ import annotations
 
 import torch
 from torch import Tensor, nn
 
+from snds.nn.flow import EuclideanizingFlow
 from snds.nn.icnn import ICNN
 
 
@@ -84,6 +85,73 @@ class Lyapunov(nn.Module):
         # eps |grad g(0)| |x|, so the smaller of the two is V in exact arithmetic and stays
         # accurate next to the target.
         value = torch.minimum(value, (grad * x).sum(-1)).clamp_min(0.0)
+        return value, grad
+
+    def forward(self, x: Tensor) -> Tensor:
+        """V at states (*, n), shape (*,)."""
+        return self.value_and_grad(x)[0]
+
+
+class WarpedLyapunov(nn.Module):
+    r"""A convex Lyapunov function seen through a learned diffeomorphism.
+
+    .. math:: V(x) = V_c\big(\phi(x) - \phi(x^*)\big), \qquad
+        \nabla V(x) = J_\phi(x)^\top \, \nabla V_c\big(\phi(x) - \phi(x^*)\big),
+
+    with :math:`V_c` a :class:`Lyapunov` (convex, quadratic floor d) and :math:`\phi` an
+    :class:`~snds.nn.flow.EuclideanizingFlow` of additive coupling layers.
+
+    **Why.** The sublevel sets of a convex V are convex, and a motion that V certifies never
+    leaves the sublevel set it is in, so it stays inside the convex hull of its own future: a
+    demonstration that winds back and forth (Messy Snake) passes points inside the hull of its
+    later wiggles, where no convex V can decrease along it. The warp bends the sublevel sets
+    to follow such a path.
+
+    **Guarantee kept.** :math:`\phi` is a bijection of :math:`\mathbb{R}^n` with an
+    invertible Jacobian everywhere (every layer is), so :math:`V(x^*) = 0`, :math:`V > 0`
+    elsewhere, and :math:`\nabla V \ne 0` away from the target (:math:`\nabla V_c(z) \ne 0`
+    for :math:`z \ne 0` by strong convexity): the projection is defined at every state, and
+    no state but the target is an equilibrium. Additive couplings shift the state by at most a
+    bounded amount B, so :math:`V(x) \ge d (|x - x^*| - 2B)_+^2`: V is radially unbounded.
+    Unlike the convex V it has no floor :math:`d |x - x^*|^2` in closed form, hence
+    :attr:`quadratic` = 0 (the stability check then samples its settle level), and V is not
+    convex along a line, which the largest-safe-step bisection assumes (it becomes a
+    heuristic, as for SDS-EF); the guarded rollout step needs only a descent direction.
+
+    The flow starts as the identity (zero weights), so a warped policy starts as the convex
+    one. The target is the origin of the model's coordinates.
+
+    Arguments:
+        convex: The convex :math:`V_c`, evaluated in the warped coordinates.
+        warp: The diffeomorphism :math:`\phi`.
+    """
+
+    #: No quadratic floor in x is known (see above).
+    quadratic: float = 0.0
+
+    def __init__(self, convex: Lyapunov, warp: EuclideanizingFlow) -> None:
+        super().__init__()
+        self.convex = convex
+        self.warp = warp
+
+    def value_and_grad(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        """Evaluates :math:`V` and :math:`\\nabla V` analytically (no autograd needed).
+
+        Arguments:
+            x: States in model coordinates, shape (*, n).
+
+        Returns:
+            V, shape (*,), and its gradient, shape (*, n).
+        """
+        n = x.shape[-1]
+        flat = x if x.dim() == 2 else x.reshape(-1, n)
+        # The target in the same batch as the states: a state exactly at the target gets
+        # exactly z = 0, hence V = 0 and a zero gradient.
+        y, caches = self.warp.forward_with_caches(torch.cat([flat, flat.new_zeros(1, n)]))
+        value, grad_z = self.convex.value_and_grad(y[:-1] - y[-1:])
+        grad = self.warp.vjp(caches, torch.cat([grad_z, grad_z.new_zeros(1, n)]))[:-1]
+        if x.dim() != 2:
+            value, grad = value.reshape(x.shape[:-1]), grad.reshape(x.shape)
         return value, grad
 
     def forward(self, x: Tensor) -> Tensor:
