@@ -159,3 +159,18 @@ def test_relaxed_mode_turns_every_decay_term_off():
     x = torch.randn(1000, 2, dtype=torch.float64) * 5
     # a(x) = 0 far, near and in between: only dV/dt <= 0 is asked for.
     assert (policy.decay(torch.ones(1000, dtype=torch.float64), x) == 0).all()
+
+
+def test_train_with_a_warped_v_end_to_end(tmp_path):
+    out = tmp_path / "warped"
+    argv = ["--quiet", "train", "--motion", "Sine", "--demos", "3", "--out", str(out), *FAST]
+    assert main([*argv, "--warp-layers", "2", "--warp-weight", "0.01"]) == 0
+    description = json.loads((out / "model.json").read_text())
+    assert description["policy"]["warp_layers"] == 2
+    assert description["train"]["warp_weight"] == 0.01
+    stability = json.loads((out / "metrics.json").read_text())["stability"]
+    assert stability["decrease_violations"] == 0 and stability["converged_fraction"] == 1.0
+    from snds.io import load_model
+
+    policy, _ = load_model(out)
+    assert policy.lyapunov.warp is not None and len(policy.lyapunov.warp.layers) == 2

@@ -190,8 +190,31 @@ def test_position_noise_perturbs_the_states_only(spiral):
     assert abs(float(offsets.mean())) < 0.005
 
 
-@pytest.mark.parametrize("name", ["nominal_weight", "position_noise", "shape_weight"])
+@pytest.mark.parametrize(
+    "name", ["nominal_weight", "position_noise", "shape_weight", "warp_weight"]
+)
 @pytest.mark.parametrize("value", [-0.1, float("nan"), float("inf")])
 def test_loss_weights_must_be_finite_and_non_negative(name, value):
     with pytest.raises(train_module.ConfigError, match=name):
         TrainConfig(**{name: value})
+
+
+def test_warp_penalty_is_the_jacobians_distance_from_the_identity(spiral):
+    config = dataclasses.replace(SMALL, warp_layers=3)
+    policy = make_policy(spiral, config, seed=5)
+    warp = policy.lyapunov.warp
+    generator = torch.Generator().manual_seed(0)
+    # The warp starts as the identity: no penalty.
+    assert train_module.warp_penalty(warp, 2, generator).item() == 0.0
+    with torch.no_grad():
+        for p in warp.parameters():
+            p.add_(torch.randn_like(p))
+    # THEN it is E |J - I|_F^2 over [-2, 2]^2, J from autograd, and it trains the warp
+    penalty = train_module.warp_penalty(warp, 2, torch.Generator().manual_seed(1))
+    x = torch.rand(256, 2, generator=torch.Generator().manual_seed(1)).double() * 4 - 2
+    jacobian = torch.autograd.functional.jacobian(lambda y: warp(y).sum(0), x).permute(1, 0, 2)
+    expected = ((jacobian - torch.eye(2, dtype=torch.float64)) ** 2).sum((-2, -1)).mean()
+    torch.testing.assert_close(penalty, expected, rtol=1e-10, atol=0.0)
+    penalty.backward()
+    # (a layer's bias only translates, so it does not enter J)
+    assert all(layer.weight.grad.abs().sum() > 0 for layer in warp.layers)

@@ -197,6 +197,13 @@ def _build_parser() -> argparse.ArgumentParser:
         "and forth (0: off, V convex; stiffer fields and ~3x training time, see "
         "benchmarks/README.md)",
     )
+    train.add_argument(
+        "--warp-weight",
+        type=float,
+        default=TrainConfig.warp_weight,
+        help="weight of the penalty that keeps the warp's Jacobian near the identity, against "
+        "stiff fields (0: off)",
+    )
     train.add_argument("--unconstrained", action="store_true", help="behavioural cloning")
     train.add_argument(
         "--architecture",
@@ -400,6 +407,7 @@ def _train_settings(
         nominal_weight=args.nominal_weight,
         position_noise=args.position_noise,
         shape_weight=shape_weight if args.shape_weight is None else args.shape_weight,
+        warp_weight=args.warp_weight,
         seed=args.seed,
         device=args.device,
     )
