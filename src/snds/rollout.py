@@ -81,7 +81,7 @@ def guarded_step(
 
     A continuous-time decrease :math:`\dot V \le -a` does not make every Euler step
     :math:`x + h \pi(x)` decrease V: where the field is stiff, a step of the control period
-    can overshoot, and rollouts may circle on a discrete cycle at constant V. Since V is convex
+    can overshoot, and rollouts may circle on a discrete cycle at constant V. Since V is smooth
     and :math:`\pi` a descent direction, a short enough step always decreases V, so each
     state's step is halved until the sufficient-decrease (Armijo) condition
 

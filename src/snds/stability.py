@@ -120,7 +120,9 @@ def largest_safe_step(
     Along a descent direction of a convex V, :math:`h \mapsto V(x + h \pi(x))` is convex and
     starts decreasing, so the steps that decrease V form an interval :math:`(0, h^*(x))`; the
     largest step safe at every state is :math:`\min_x h^*(x)`, found by bisection (in log
-    scale) on one shared h.
+    scale) on one shared h. For a V that is not convex (a warped V, SDS-EF's) the safe steps
+    of a state need not form an interval, and the answer is a heuristic: every given state is
+    safe at the step returned, not necessarily at every shorter one.
 
     Arguments:
         policy: A stable policy, in the dtype of ``x``.
