@@ -16,6 +16,7 @@ rollouts from the 3x box, 20,000 decrease samples in the 10x box (float64).
 
     python benchmarks/reliability.py                  # both parts; resumes
     python benchmarks/reliability.py --part real --seeds 2
+    python benchmarks/reliability.py --recipe warped --runs runs/reliability-warped
 
 Runs go to ``runs/reliability/{lasa,real}/`` (models included); rows, a per-task summary and
 the README table go to ``benchmarks/results/reliability/``. Both parts resume: a finished run
@@ -63,6 +64,16 @@ REAL_TASKS: dict[str, tuple[str, str | None]] = {
 }
 
 
+#: ``--recipe`` name -> the ``snds train`` flags it adds. A recipe other than the default runs
+#: both parts through ``snds train`` (LASA with ``--motion``, the same random 0.8 / 0.2 split
+#: of the samples as ``snds benchmark``) into its own runs, results and README block.
+RECIPES: dict[str, list[str]] = {
+    "default": [],
+    # benchmarks/messy_snake.py: Messy Snake within the accuracy bar on all five seeds.
+    "warped": ["--warp-layers", "6", "--warp-weight", "0.001", "--position-noise", "0.0015"],
+}
+
+
 def meets_bars(row: dict) -> dict[str, bool]:
     """Which of the three bars a run meets."""
     error = row.get("velocity_error_relative")
@@ -78,12 +89,18 @@ def meets_bars(row: dict) -> dict[str, bool]:
 
 
 def run_lasa(args: argparse.Namespace, settings: SweepSettings) -> None:
+    if args.recipe != "default":
+        tasks = {motion: ["--motion", motion] for motion in resolve_motions(args.motions)}
+        _run_cli(args, settings, "lasa", tasks)
+        return
     tasks = make_tasks(resolve_motions(args.motions), ["snds"], seeds=args.seeds)
     run_sweep(tasks, out=args.runs / "lasa", settings=settings, jobs=args.jobs)
 
 
 def lasa_rows(args: argparse.Namespace) -> list[dict]:
     """The finished LASA runs of these motions and seeds, motion-major."""
+    if args.recipe != "default":
+        return _cli_rows(args, "lasa", resolve_motions(args.motions))
     done = finished_rows(args.runs / "lasa")
     keys = [t.key for t in make_tasks(resolve_motions(args.motions), ["snds"], seeds=args.seeds)]
     return [{"part": "lasa", "task": done[k]["motion"], **done[k]} for k in keys if k in done]
@@ -100,11 +117,11 @@ def _train_real(argv: list[str]) -> float:
     return time.process_time() - cpu
 
 
-def _real_row(task: str, seed: int, directory: Path, cpu: float) -> dict:
+def _cli_row(part: str, task: str, seed: int, directory: Path, cpu: float) -> dict:
     metrics = json.loads((directory / "metrics.json").read_text())
     stability = metrics["stability"]
     return {
-        "part": "real",
+        "part": part,
         "task": task,
         "seed": seed,
         "train_seconds": metrics["train_seconds"],
@@ -118,8 +135,33 @@ def _real_row(task: str, seed: int, directory: Path, cpu: float) -> dict:
     }
 
 
-def _real_dir(args: argparse.Namespace, task: str, seed: int) -> Path:
-    return args.runs / "real" / task.replace(" ", "_") / f"seed={seed}"
+def _run_dir(args: argparse.Namespace, part: str, task: str, seed: int) -> Path:
+    return args.runs / part / task.replace(" ", "_") / f"seed={seed}"
+
+
+def _run_cli(
+    args: argparse.Namespace, settings: SweepSettings, part: str, tasks: dict[str, list[str]]
+) -> None:
+    """Each (task, seed) through ``snds train`` with the recipe's flags; skips finished runs.
+
+    Arguments:
+        tasks: Task name -> the flags that select its data.
+    """
+    pending = []
+    for task, select in tasks.items():
+        for seed in range(args.seeds):
+            directory = _run_dir(args, part, task, seed)
+            if (directory / "row.json").is_file():
+                continue
+            argv = ["--quiet", "train", *select, "--seed", str(seed), *RECIPES[args.recipe]]
+            argv += ["--rollouts", str(settings.rollouts), "--samples", str(settings.samples)]
+            pending.append((task, seed, directory, argv + ["--out", str(directory)]))
+    with ProcessPoolExecutor(max_workers=args.jobs or os.cpu_count()) as pool:
+        futures = {pool.submit(_train_real, job[3]): job for job in pending}
+        for future, (task, seed, directory, _) in futures.items():
+            row = _cli_row(part, task, seed, directory, future.result())
+            write_json(directory / "row.json", row)
+            print(json.dumps(row), flush=True)
 
 
 def run_real(args: argparse.Namespace, settings: SweepSettings) -> None:
@@ -127,28 +169,22 @@ def run_real(args: argparse.Namespace, settings: SweepSettings) -> None:
     if not SHARED.is_dir():
         print(f"reliability: {SHARED} is absent; skipping the real files")
         return
-    pending = []
-    for task, (name, select) in REAL_TASKS.items():
-        for seed in range(args.seeds):
-            directory = _real_dir(args, task, seed)
-            if (directory / "row.json").is_file():
-                continue
-            argv = ["--quiet", "train", "--data", str(SHARED / name), "--seed", str(seed)]
-            argv += ["--demos", select] if select else []
-            argv += ["--rollouts", str(settings.rollouts), "--samples", str(settings.samples)]
-            pending.append((task, seed, directory, argv + ["--out", str(directory)]))
-    with ProcessPoolExecutor(max_workers=args.jobs or os.cpu_count()) as pool:
-        futures = {pool.submit(_train_real, job[3]): job for job in pending}
-        for future, (task, seed, directory, _) in futures.items():
-            row = _real_row(task, seed, directory, future.result())
-            write_json(directory / "row.json", row)
-            print(json.dumps(row), flush=True)
+    tasks = {
+        task: ["--data", str(SHARED / name), *(["--demos", select] if select else [])]
+        for task, (name, select) in REAL_TASKS.items()
+    }
+    _run_cli(args, settings, "real", tasks)
+
+
+def _cli_rows(args: argparse.Namespace, part: str, tasks: Sequence[str]) -> list[dict]:
+    """The finished ``snds train`` runs of these tasks and seeds, task-major."""
+    files = [_run_dir(args, part, t, s) / "row.json" for t in tasks for s in range(args.seeds)]
+    return [json.loads(file.read_text()) for file in files if file.is_file()]
 
 
 def real_rows(args: argparse.Namespace) -> list[dict]:
     """The finished real-file runs of these seeds, task-major."""
-    files = [_real_dir(args, t, s) / "row.json" for t in REAL_TASKS for s in range(args.seeds)]
-    return [json.loads(file.read_text()) for file in files if file.is_file()]
+    return _cli_rows(args, "real", list(REAL_TASKS))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -170,8 +206,8 @@ def task_table(rows: Sequence[dict]) -> str:
     """One line per task: its worst seed on each bar, and how far its seeds spread."""
     lines = [
         "| part | task | runs | all bars met | worst velocity error (relative) | worst / median "
-        "seed | lowest converged | violations | DTW (paper scale, mean) | CPU s, max (lasa: "
-        "training; real: training and check) |",
+        "seed | lowest converged | violations | DTW (paper scale, mean) | CPU s, max (lasa "
+        "by snds benchmark: training; by snds train: training and check) |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for (part, task), group in _by_task(rows).items():
@@ -214,8 +250,10 @@ def overall_table(rows: Sequence[dict]) -> str:
 
 
 def write_results(rows: Sequence[dict], args: argparse.Namespace, settings: SweepSettings) -> None:
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    write_json(RESULTS / "rows.json", list(rows))
+    name = "reliability" if args.recipe == "default" else f"reliability-{args.recipe}"
+    results = RESULTS.parent / name
+    results.mkdir(parents=True, exist_ok=True)
+    write_json(results / "rows.json", list(rows))
     fields = list(dict.fromkeys(k for r in rows for k in r))
 
     def write_csv(tmp: Path) -> None:
@@ -224,21 +262,22 @@ def write_results(rows: Sequence[dict], args: argparse.Namespace, settings: Swee
             writer.writeheader()
             writer.writerows(rows)
 
-    atomic_write(RESULTS / "rows.csv", write_csv)
+    atomic_write(results / "rows.csv", write_csv)
     machine = f"{platform.machine()}, {os.cpu_count()} cores, {platform.platform()}"
+    recipe = "" if args.recipe == "default" else f" --recipe {args.recipe}"
     header = (
         f"Measured {datetime.date.today().isoformat()} on {machine} "
-        f"(`python benchmarks/reliability.py --seeds {args.seeds}`), two runs side by side, "
-        "one torch thread each. Bars: held-out velocity error at most "
+        f"(`python benchmarks/reliability.py --seeds {args.seeds}{recipe}`), two runs side by "
+        "side, one torch thread each. Bars: held-out velocity error at most "
         f"{ACCURACY_BAR:g} of the velocities' mean square, converged 1.0 from "
         f"{settings.rollouts} random starts in the 3x box, 0 violations in {settings.samples:,} "
-        "decrease samples in the 10x box (float64). Per task: "
-        "`results/reliability/summary.md`; rows: `results/reliability/rows.csv`."
+        f"decrease samples in the 10x box (float64). Per task: `results/{name}/summary.md`; "
+        f"rows: `results/{name}/rows.csv`."
     )
     body = f"{header}\n\n{overall_table(rows)}"
-    (RESULTS / "summary.md").write_text(f"{body}\n\n{task_table(rows)}\n")
+    (results / "summary.md").write_text(f"{body}\n\n{task_table(rows)}\n")
     if not args.no_readme:
-        write_readme_section("reliability", body)
+        write_readme_section(name, body)
 
 
 def main() -> None:
@@ -251,6 +290,12 @@ def main() -> None:
     parser.add_argument("--jobs", type=int, default=None, help="local processes (all cores)")
     parser.add_argument("--runs", type=Path, default=Path("runs/reliability"))
     parser.add_argument("--no-readme", action="store_true")
+    parser.add_argument(
+        "--recipe",
+        choices=list(RECIPES),
+        default="default",
+        help="training flags to add (default: none); a recipe has its own results and table",
+    )
     args = parser.parse_args()
     settings = SweepSettings(rollouts=args.rollouts, samples=args.samples)
     if args.part in ("real", "both"):
