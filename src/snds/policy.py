@@ -91,11 +91,15 @@ class PolicyConfig:
         near_radius: Radius of that region, in model coordinates.
         warp_layers: Coupling layers of a learned diffeomorphism inside V (0: none, V convex;
             see :class:`~snds.nn.WarpedLyapunov`; needs n >= 2). A convex V cannot follow a
-            demonstration that winds back and forth: on Messy Snake (seed 0) the projected
-            demonstrated velocities alone already miss by 0.05 of their mean square, and 6
-            layers bring the held-out error from 0.074 to 0.028, but they stiffen the field
-            off the data (largest safe Euler step 1e-6 to 7e-5 s against 3e-3 s) and cost about
-            3x the training time, so the warp is off by default (benchmarks/messy_snake.py).
+            demonstration that winds back and forth: on Messy Snake the demonstrated
+            velocities, projected with the default model's V, already miss by 0.047-0.053 of
+            their mean square, and 6 layers bring the held-out error from 0.074 / 0.115 to
+            0.028 / 0.057 (seeds 0 / 2). Alone they leave the field stiff (largest safe Euler
+            step 5e-7 s against 3e-3 s; 16% of random starts arrive in time); with
+            ``TrainConfig(warp_weight=0.001, position_noise=0.0015)`` all five seeds meet
+            0.05 with every start converged (step 3e-5 s). They cost 2-3x the training time
+            and some accuracy on clean data (LASA Saeghe 0.0119 -> 0.0171 with that recipe),
+            so the warp is off by default (benchmarks/messy_snake.py).
         warp_features: Random Fourier features per coupling layer.
         warp_scale: Standard deviation of their frequencies, per unit of model coordinates.
         rectifier: r in the projection ("relu" as in the paper, or "softplus").
