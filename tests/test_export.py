@@ -424,7 +424,15 @@ def test_a_warped_policy_exports_exactly_to_pt2(tmp_path: Path) -> None:
     assert check.passed and check.max_error <= 1e-9
 
 
-def test_a_warped_policy_is_refused_by_onnx_export_before_any_file(tmp_path: Path) -> None:
+def test_a_warped_policy_is_refused_by_onnx_export_before_any_file(tmp_path: Path, capsys):
     with pytest.raises(export.ExportError, match=r"warped V .* export to \.pt2 instead"):
         export.export_onnx(_warped_policy(), tmp_path / "warped.onnx")
     assert not any(tmp_path.iterdir())
+    save_model(_warped_policy(), tmp_path / "model")
+    assert main(["export", str(tmp_path / "model"), "--format", "onnx"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "export to .pt2 instead" in err
+    assert sorted(p.name for p in (tmp_path / "model").iterdir()) == [
+        "model.json",
+        "model.safetensors",
+    ]
