@@ -417,22 +417,13 @@ def _warped_policy():
     return policy
 
 
-def test_a_warped_policy_exports_exactly_to_pt2(tmp_path: Path) -> None:
+@pytest.mark.parametrize("fmt", ["onnx", "pt2"])
+def test_a_warped_policy_exports_exactly(tmp_path: Path, fmt: str) -> None:
+    # 64 features per layer: an amplitude sqrt(2/64) that float32 does not hold exactly
     policy = _warped_policy()
-    path = export.export_pt2(policy, tmp_path / "warped.pt2", dtype=torch.float64)
+    write = export.export_onnx if fmt == "onnx" else export.export_pt2
+    path = write(policy, tmp_path / f"warped.{fmt}", dtype=torch.float64)
     check = export.verify(path, policy, samples=2_000)
+    # (3e-11 measured: 1000 extents out, the Fourier angles reach 1e5 rad, whose last bit
+    # differs between the two runtimes' matrix products)
     assert check.passed and check.max_error <= 1e-9
-
-
-def test_a_warped_policy_is_refused_by_onnx_export_before_any_file(tmp_path: Path, capsys):
-    with pytest.raises(export.ExportError, match=r"warped V .* export to \.pt2 instead"):
-        export.export_onnx(_warped_policy(), tmp_path / "warped.onnx")
-    assert not any(tmp_path.iterdir())
-    save_model(_warped_policy(), tmp_path / "model")
-    assert main(["export", str(tmp_path / "model"), "--format", "onnx"]) == 2
-    err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "export to .pt2 instead" in err
-    assert sorted(p.name for p in (tmp_path / "model").iterdir()) == [
-        "model.json",
-        "model.safetensors",
-    ]

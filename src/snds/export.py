@@ -40,7 +40,6 @@ import torch
 
 from snds.errors import SNDSError
 from snds.io import atomic_write
-from snds.nn.lyapunov import WarpedLyapunov
 from snds.nn.mlp import FourierFeatures
 from snds.policy import Policy, StablePolicy, project
 from snds.se3 import PosePolicy
@@ -391,14 +390,6 @@ def export_onnx(policy: Policy, path: str | Path, *, dtype: torch.dtype = torch.
         policy's also ``snds.angle_extent`` (radians) and ``snds.top_angular_speed`` (rad/s).
     """
     _check_dtype(dtype)
-    if isinstance(getattr(policy, "lyapunov", None), WarpedLyapunov):
-        # Measured: its ONNX graph runs the warp correctly alone but the whole policy, far
-        # from the data, differs from the library by 1e-3 relative in float64 (onnxruntime
-        # 1.32), while the same torch.export program saved as .pt2 is exact.
-        raise ExportError(
-            "ONNX export of a policy with a warped V (warp_layers > 0) is not supported yet: "
-            "its check fails far from the data; export to .pt2 instead"
-        )
     try:
         import onnx
     except ImportError as error:

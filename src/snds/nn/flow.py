@@ -98,8 +98,11 @@ class RFFCoupling(nn.Module):
         # one small product per call, and those columns then get no gradient.
         columns = self._columns()
         angles = torch.addmm(self.phases, x, self.frequencies)
+        # The amplitude goes into the weights, not into addmm's alpha: ONNX exports alpha as
+        # Gemm's float32 attribute, which rounded sqrt(2/m) and put a float64 export of a
+        # warped policy 1e-3 (relative) off the library far from the data.
         raw = torch.addmm(
-            self.bias * columns, torch.cos(angles), self.weight * columns, alpha=self.amplitude
+            self.bias * columns, torch.cos(angles), self.weight * (columns * self.amplitude)
         )
         if not self.affine:
             return torch.zeros_like(x), raw, torch.zeros_like(x), angles
