@@ -249,6 +249,31 @@ def overall_table(rows: Sequence[dict]) -> str:
     return "\n".join(lines)
 
 
+def against_default(rows: Sequence[dict], default: Sequence[dict]) -> str:
+    """How a recipe's runs compare with the default's on the same (part, task, seed)."""
+    base = {(r["part"], r["task"], r["seed"]): r for r in default}
+    pairs = [(r, base[k]) for r in rows if (k := (r["part"], r["task"], r["seed"])) in base]
+    lines = [
+        "| part | runs | error lower | median error ratio (recipe / default) | worst "
+        "ratio | median training-time ratio |",
+        "|---|---|---|---|---|---|",
+    ]
+    for part in ("lasa", "real"):
+        mine = [(r, b) for r, b in pairs if r["part"] == part]
+        if not mine:
+            continue
+        ratios = [r["velocity_error_relative"] / b["velocity_error_relative"] for r, b in mine]
+        worst = max(range(len(mine)), key=ratios.__getitem__)
+        # Wall time of the training alone: both recipes record it, two runs side by side.
+        cpu = [r["train_seconds"] / b["train_seconds"] for r, b in mine]
+        lines.append(
+            f"| {part} | {len(mine)} | {sum(q < 1 for q in ratios)} | "
+            f"{statistics.median(ratios):.2f} | {ratios[worst]:.2f} ({mine[worst][0]['task']}, "
+            f"seed {mine[worst][0]['seed']}) | {statistics.median(cpu):.1f} |"
+        )
+    return "Against the default recipe on the same runs (its table above):\n\n" + "\n".join(lines)
+
+
 def write_results(rows: Sequence[dict], args: argparse.Namespace, settings: SweepSettings) -> None:
     name = "reliability" if args.recipe == "default" else f"reliability-{args.recipe}"
     results = RESULTS.parent / name
@@ -275,6 +300,9 @@ def write_results(rows: Sequence[dict], args: argparse.Namespace, settings: Swee
         f"rows: `results/{name}/rows.csv`."
     )
     body = f"{header}\n\n{overall_table(rows)}"
+    default_rows = RESULTS / "rows.json"
+    if args.recipe != "default" and default_rows.is_file():
+        body += "\n\n" + against_default(rows, json.loads(default_rows.read_text()))
     (results / "summary.md").write_text(f"{body}\n\n{task_table(rows)}\n")
     if not args.no_readme:
         write_readme_section(name, body)
