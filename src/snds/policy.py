@@ -277,7 +277,8 @@ class StablePolicy(Policy):
     Internally it works in model coordinates (target at 0, extent 1, top speed 1; see
     :class:`~snds.data.Normalization`): :math:`\pi` there is :func:`project` applied to the
     nominal :math:`f(x) - f(0)` (so that the target is an equilibrium) with the
-    :class:`~snds.nn.Lyapunov` function :math:`V` and decay :math:`a \ge \rho V`.
+    :class:`~snds.nn.Lyapunov` function :math:`V` (a :class:`~snds.nn.WarpedLyapunov` with
+    ``warp_layers`` > 0) and decay :math:`a \ge \rho V`.
 
     Arguments:
         dim: State dimension n.
