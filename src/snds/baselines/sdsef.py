@@ -111,16 +111,13 @@ class FlowLyapunov(nn.Module):
         self.flow = flow
 
     def latent(self, x: Tensor) -> tuple[Tensor, list[LayerCache]]:
-        r""":math:`e = \phi(x) - \phi(0)` for states (B, n), with a zero last row added.
-
-        The target goes through the flow in the same batch as the states, so that a state at
-        exactly the target gets exactly :math:`e = 0`.
+        r""":math:`e = \phi(x) - \phi(0)` for states (B, n), with a zero last row added
+        (:meth:`~snds.nn.flow.EuclideanizingFlow.centred`: exactly 0 at the target).
 
         Returns:
             e with the target's row last, shape (B + 1, n), and the layers' caches.
         """
-        y, caches = self.flow.forward_with_caches(torch.cat([x, x.new_zeros(1, x.shape[-1])]))
-        return y - y[-1:], caches
+        return self.flow.centred(x)
 
     def value_and_grad(self, x: Tensor) -> tuple[Tensor, Tensor]:
         r""":math:`V` and :math:`\nabla V = 2 J_\phi^\top (\phi(x) - \phi(0))`, analytically.
@@ -139,8 +136,7 @@ class FlowLyapunov(nn.Module):
     def forward(self, x: Tensor) -> Tensor:
         """V at states (*, n), shape (*,)."""
         flat = x.reshape(-1, x.shape[-1])
-        e = self.flow(torch.cat([flat, flat.new_zeros(1, flat.shape[-1])]))
-        e = e[:-1] - e[-1:]
+        e = self.flow.centred(flat)[0][:-1]
         return (e * e).sum(-1).reshape(x.shape[:-1])
 
 

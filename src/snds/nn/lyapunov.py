@@ -145,13 +145,9 @@ class WarpedLyapunov(nn.Module):
         """
         n = x.shape[-1]
         flat = x if x.dim() == 2 else x.reshape(-1, n)
-        y, caches = self.warp.forward_with_caches(torch.cat([flat, flat.new_zeros(1, n)]))
-        # The target's own row and the reference row may round apart by an ulp in the matrix
-        # products (seen: V = 2e-31 at the target in 3-D), so a state exactly at the target
-        # gets z = 0 exactly, hence V = 0 and a zero gradient there.
-        at_target = (flat == 0).all(-1, keepdim=True)
-        z = torch.where(at_target, torch.zeros_like(flat), y[:-1] - y[-1:])
-        value, grad_z = self.convex.value_and_grad(z)
+        # A state exactly at the target gets z = 0 exactly, hence V = 0 there.
+        z, caches = self.warp.centred(flat)
+        value, grad_z = self.convex.value_and_grad(z[:-1])
         grad = self.warp.vjp(caches, torch.cat([grad_z, grad_z.new_zeros(1, n)]))[:-1]
         if x.dim() != 2:
             value, grad = value.reshape(x.shape[:-1]), grad.reshape(x.shape)
