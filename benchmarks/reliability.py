@@ -1,12 +1,13 @@
 """Reliability: default training on every LASA motion and every real file, 5 seeds, no reruns.
 
-Two parts, one table in benchmarks/README.md (``reliability`` markers):
+Two parts, one table in benchmarks/README.md (``reliability`` markers), every run through
+``snds train`` with its defaults and ``--seed S``:
 
-* ``lasa``: ``snds benchmark --methods snds --motions all --seeds 5`` (30 motions x 5 seeds,
-  the paper's protocol: a random 0.8 / 0.2 split of the samples, default training);
-* ``real``: ``snds train --data FILE --seed S`` with its defaults on each file of
-  ``../shared/data`` (3D-pick-box's demonstrations end at two places 0.26 m apart, so its
-  pairs 0,2 and 1,3 are two tasks, as a user would select them with ``--demos``).
+* ``lasa``: ``--motion M`` for the 30 motions (the paper's protocol: a random 0.8 / 0.2 split
+  of the samples, the split of ``snds benchmark``);
+* ``real``: ``--data FILE`` for each file of ``../shared/data`` (3D-pick-box's demonstrations
+  end at two places 0.26 m apart, so its pairs 0,2 and 1,3 are two tasks, as a user would
+  select them with ``--demos``).
 
 Every run faces the same bars, set before the sweep: the held-out velocity error at most
 :data:`ACCURACY_BAR` of the demonstrated velocities' mean square (``velocity_error_relative``,
@@ -16,11 +17,12 @@ rollouts from the 3x box, 20,000 decrease samples in the 10x box (float64).
 
     python benchmarks/reliability.py                  # both parts; resumes
     python benchmarks/reliability.py --part real --seeds 2
-    python benchmarks/reliability.py --recipe warped --runs runs/reliability-warped
+    python benchmarks/reliability.py --recipe convex  # the convex V of before 2026-12-02
 
-Runs go to ``runs/reliability/{lasa,real}/`` (models included); rows, a per-task summary and
-the README table go to ``benchmarks/results/reliability/``. Both parts resume: a finished run
-is not run again.
+Runs go to ``runs/reliability/{lasa,real}/`` (``runs/reliability-RECIPE`` for a recipe; models
+included); rows, a per-task summary and the README table go to
+``benchmarks/results/reliability/``. Both parts resume: a finished run is not run again, and a
+runs folder made with other library defaults or flags is refused (``settings.json``).
 """
 
 from __future__ import annotations
@@ -39,14 +41,10 @@ from pathlib import Path
 
 from _readme import write_readme_section
 
-from snds.benchmark import (
-    SweepSettings,
-    finished_rows,
-    make_tasks,
-    resolve_motions,
-    run_sweep,
-)
+from snds.benchmark import SweepSettings, resolve_motions
 from snds.io import atomic_write, write_json
+from snds.policy import PolicyConfig
+from snds.train import TrainConfig
 
 HERE = Path(__file__).resolve().parent
 SHARED = HERE.parent.parent / "shared" / "data"
@@ -64,13 +62,12 @@ REAL_TASKS: dict[str, tuple[str, str | None]] = {
 }
 
 
-#: ``--recipe`` name -> the ``snds train`` flags it adds. A recipe other than the default runs
-#: both parts through ``snds train`` (LASA with ``--motion``, the same random 0.8 / 0.2 split
-#: of the samples as ``snds benchmark``) into its own runs, results and README block.
+#: ``--recipe`` name -> the ``snds train`` flags it adds. A recipe other than the default has
+#: its own runs, results and README block, compared with the default's.
 RECIPES: dict[str, list[str]] = {
     "default": [],
-    # benchmarks/messy_snake.py: Messy Snake within the accuracy bar on all five seeds.
-    "warped": ["--warp-layers", "6", "--warp-weight", "0.001", "--position-noise", "0.0015"],
+    # The defaults before 2026-12-02: a convex V trained on the demonstrated states.
+    "convex": ["--warp-layers", "0", "--warp-weight", "0", "--position-noise", "0"],
 }
 
 
@@ -89,21 +86,48 @@ def meets_bars(row: dict) -> dict[str, bool]:
 
 
 def run_lasa(args: argparse.Namespace, settings: SweepSettings) -> None:
-    if args.recipe != "default":
-        tasks = {motion: ["--motion", motion] for motion in resolve_motions(args.motions)}
-        _run_cli(args, settings, "lasa", tasks)
-        return
-    tasks = make_tasks(resolve_motions(args.motions), ["snds"], seeds=args.seeds)
-    run_sweep(tasks, out=args.runs / "lasa", settings=settings, jobs=args.jobs)
+    tasks = {motion: ["--motion", motion] for motion in resolve_motions(args.motions)}
+    _run_cli(args, settings, "lasa", tasks)
 
 
 def lasa_rows(args: argparse.Namespace) -> list[dict]:
     """The finished LASA runs of these motions and seeds, motion-major."""
-    if args.recipe != "default":
-        return _cli_rows(args, "lasa", resolve_motions(args.motions))
-    done = finished_rows(args.runs / "lasa")
-    keys = [t.key for t in make_tasks(resolve_motions(args.motions), ["snds"], seeds=args.seeds)]
-    return [{"part": "lasa", "task": done[k]["motion"], **done[k]} for k in keys if k in done]
+    return _cli_rows(args, "lasa", resolve_motions(args.motions))
+
+
+def sweep_settings(recipe: str, settings: SweepSettings) -> dict:
+    """What decides a run's result besides its task and seed: flags, library defaults, check."""
+    # Through JSON, so that it compares equal to the record read back (tuples become lists).
+    return json.loads(
+        json.dumps(
+            {
+                "flags": RECIPES[recipe],
+                "policy_defaults": PolicyConfig().to_dict(),
+                "train_defaults": TrainConfig().to_dict(),
+                "check": {"rollouts": settings.rollouts, "samples": settings.samples},
+            }
+        )
+    )
+
+
+def check_runs_folder(runs: Path, expected: dict) -> None:
+    """Refuses to resume runs made with other settings; records them in a new folder."""
+    record = runs / "settings.json"
+    if record.is_file():
+        found = json.loads(record.read_text())
+        if found != expected:
+            keys = sorted(k for k in expected if found.get(k) != expected[k])
+            raise SystemExit(
+                f"reliability: {runs} holds runs made with other {', '.join(keys)} "
+                f"(see {record}); pass a new --runs folder"
+            )
+    elif any(runs.glob("*/*/seed=*/row.json")):
+        raise SystemExit(
+            f"reliability: {runs} holds runs of unrecorded settings; pass a new --runs"
+        )
+    else:
+        runs.mkdir(parents=True, exist_ok=True)
+        write_json(record, expected)
 
 
 def _train_real(argv: list[str]) -> float:
@@ -249,14 +273,14 @@ def overall_table(rows: Sequence[dict]) -> str:
     return "\n".join(lines)
 
 
-def against_default(rows: Sequence[dict], default: Sequence[dict]) -> str:
-    """How a recipe's runs compare with the default's on the same (part, task, seed)."""
-    base = {(r["part"], r["task"], r["seed"]): r for r in default}
+def against(rows: Sequence[dict], other: Sequence[dict], label: str) -> str:
+    """How these runs compare with ``other`` recipe's on the same (part, task, seed)."""
+    base = {(r["part"], r["task"], r["seed"]): r for r in other}
     pairs = [(r, base[k]) for r in rows if (k := (r["part"], r["task"], r["seed"])) in base]
     lines = [
-        "| part | runs | error lower | median error ratio (recipe / default) | worst "
-        "ratio | median training-time ratio |",
-        "|---|---|---|---|---|---|",
+        f"| part | runs | error lower | median error ratio (these / {label}) | worst ratio | "
+        f"DTW lower | mean DTW (these / {label}) | median training-time ratio |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for part in ("lasa", "real"):
         mine = [(r, b) for r, b in pairs if r["part"] == part]
@@ -264,19 +288,28 @@ def against_default(rows: Sequence[dict], default: Sequence[dict]) -> str:
             continue
         ratios = [r["velocity_error_relative"] / b["velocity_error_relative"] for r, b in mine]
         worst = max(range(len(mine)), key=ratios.__getitem__)
+        dtw = [(r["dtw_paper"], b["dtw_paper"]) for r, b in mine]
         # Wall time of the training alone: both recipes record it, two runs side by side.
-        cpu = [r["train_seconds"] / b["train_seconds"] for r, b in mine]
+        wall = [r["train_seconds"] / b["train_seconds"] for r, b in mine]
         lines.append(
             f"| {part} | {len(mine)} | {sum(q < 1 for q in ratios)} | "
             f"{statistics.median(ratios):.2f} | {ratios[worst]:.2f} ({mine[worst][0]['task']}, "
-            f"seed {mine[worst][0]['seed']}) | {statistics.median(cpu):.1f} |"
+            f"seed {mine[worst][0]['seed']}) | {sum(a < b for a, b in dtw)} | "
+            f"{statistics.mean(a for a, _ in dtw):.2f} / {statistics.mean(b for _, b in dtw):.2f}"
+            f" | {statistics.median(wall):.1f} |"
         )
-    return "Against the default recipe on the same runs (its table above):\n\n" + "\n".join(lines)
+    return f"Against the {label} recipe on the same runs (its table below or above):\n\n" + (
+        "\n".join(lines)
+    )
+
+
+def _results(recipe: str) -> Path:
+    return RESULTS.parent / ("reliability" if recipe == "default" else f"reliability-{recipe}")
 
 
 def write_results(rows: Sequence[dict], args: argparse.Namespace, settings: SweepSettings) -> None:
-    name = "reliability" if args.recipe == "default" else f"reliability-{args.recipe}"
-    results = RESULTS.parent / name
+    results = _results(args.recipe)
+    name = results.name
     results.mkdir(parents=True, exist_ok=True)
     write_json(results / "rows.json", list(rows))
     fields = list(dict.fromkeys(k for r in rows for k in r))
@@ -291,7 +324,8 @@ def write_results(rows: Sequence[dict], args: argparse.Namespace, settings: Swee
     machine = f"{platform.machine()}, {os.cpu_count()} cores, {platform.platform()}"
     recipe = "" if args.recipe == "default" else f" --recipe {args.recipe}"
     header = (
-        f"Measured {datetime.date.today().isoformat()} on {machine} "
+        f"Tables of {datetime.date.today().isoformat()} (a resumed sweep keeps the rows of its "
+        f"earlier runs) on {machine} "
         f"(`python benchmarks/reliability.py --seeds {args.seeds}{recipe}`), two runs side by "
         "side, one torch thread each. Bars: held-out velocity error at most "
         f"{ACCURACY_BAR:g} of the velocities' mean square, converged 1.0 from "
@@ -300,9 +334,10 @@ def write_results(rows: Sequence[dict], args: argparse.Namespace, settings: Swee
         f"rows: `results/{name}/rows.csv`."
     )
     body = f"{header}\n\n{overall_table(rows)}"
-    default_rows = RESULTS / "rows.json"
-    if args.recipe != "default" and default_rows.is_file():
-        body += "\n\n" + against_default(rows, json.loads(default_rows.read_text()))
+    other = "convex" if args.recipe == "default" else "default"
+    other_rows = _results(other) / "rows.json"
+    if other_rows.is_file():
+        body += "\n\n" + against(rows, json.loads(other_rows.read_text()), other)
     (results / "summary.md").write_text(f"{body}\n\n{task_table(rows)}\n")
     if not args.no_readme:
         write_readme_section(name, body)
@@ -316,7 +351,9 @@ def main() -> None:
     parser.add_argument("--rollouts", type=int, default=300, help="per run's stability check")
     parser.add_argument("--samples", type=int, default=20_000, help="per run's decrease check")
     parser.add_argument("--jobs", type=int, default=None, help="local processes (all cores)")
-    parser.add_argument("--runs", type=Path, default=Path("runs/reliability"))
+    parser.add_argument(
+        "--runs", type=Path, default=None, help="runs folder (runs/reliability[-RECIPE])"
+    )
     parser.add_argument("--no-readme", action="store_true")
     parser.add_argument(
         "--recipe",
@@ -326,6 +363,9 @@ def main() -> None:
     )
     args = parser.parse_args()
     settings = SweepSettings(rollouts=args.rollouts, samples=args.samples)
+    if args.runs is None:
+        args.runs = Path("runs") / _results(args.recipe).name
+    check_runs_folder(args.runs, sweep_settings(args.recipe, settings))
     if args.part in ("real", "both"):
         run_real(args, settings)
     if args.part in ("lasa", "both"):

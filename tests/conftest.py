@@ -74,6 +74,7 @@ def linear_policy(gain: float) -> StablePolicy:
         decay_rate=2.0 * gain,
         decay_far=0.0,
         decay_near=0.0,
+        warp_layers=0,
     )
     normalization = Normalization(center=np.zeros(2), length=1.0, time=1.0)
     policy = StablePolicy(dim=2, normalization=normalization, config=config).double()

@@ -200,8 +200,10 @@ def test_pt2_round_trip_is_exact_and_pickle_free(tmp_path: Path, dim: int) -> No
         np.testing.assert_allclose(run(x), policy(torch.as_tensor(x)).numpy(), rtol=1e-12)
 
 
-def test_lyapunov_with_the_target_values_given_is_the_same(policy) -> None:
-    # GIVEN g(0) and grad g(0) computed once, as the export does
+def test_lyapunov_with_the_target_values_given_is_the_same() -> None:
+    # GIVEN a convex V, and g(0) and grad g(0) computed once, as the export does
+    config = PolicyConfig(**{**SMALL.to_dict(), "warp_layers": 0})
+    policy = make_policy(shifted_spiral(), config=config, seed=3, dtype=torch.float32)
     lyapunov = copy.deepcopy(policy.lyapunov).to(torch.float64)
     x = torch.as_tensor(export.random_states(policy, 1_000, seed=5) - 100.0).reshape(10, 100, 2)
     g0, grad_g0 = lyapunov.icnn.value_and_grad(torch.zeros(1, 2, dtype=torch.float64))

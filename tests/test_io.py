@@ -124,6 +124,22 @@ def test_a_model_saved_before_the_near_target_decay_loads_without_it(saved, spir
     assert not torch.equal(policy(x), loaded(x))
 
 
+def test_a_model_saved_before_the_warp_loads_with_a_convex_v(spiral, tmp_path):
+    # GIVEN a convex model whose model.json predates the warp fields (the default since)
+    config = dataclasses.replace(make_policy(spiral).config, warp_layers=0)
+    policy = make_policy(spiral, config, seed=13)
+    save_model(policy, tmp_path / "model")
+    description = json.loads((tmp_path / "model" / "model.json").read_text())
+    for key in ("warp_layers", "warp_features", "warp_scale"):
+        del description["policy"][key]
+    (tmp_path / "model" / "model.json").write_text(json.dumps(description))
+    # WHEN it is loaded, THEN it is the convex policy it was trained as, not a warped one
+    loaded, _ = load_model(tmp_path / "model")
+    assert loaded.config.warp_layers == 0 and not hasattr(loaded.lyapunov, "warp")
+    x = torch.randn(1000, 2, dtype=torch.float64) * 20
+    assert torch.equal(policy(x), loaded(x))
+
+
 def test_a_warped_policy_round_trips_and_records_its_warp(spiral, tmp_path):
     config = dataclasses.replace(make_policy(spiral).config, warp_layers=3)
     policy = make_policy(spiral, config, seed=12)

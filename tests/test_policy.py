@@ -37,13 +37,16 @@ def test_decrease_holds_at_random_and_far_points(spiral, rectifier, scale, warp_
     assert (policy.decay(v, x) >= 0.5 * v).all() and (v > 0).all()
 
 
-def test_relaxed_mode_only_promises_non_increase(spiral):
-    config = dataclasses.replace(SMALL, decay_rate=0.0)
+@pytest.mark.parametrize("warp_layers", [0, 3])
+def test_relaxed_mode_only_promises_non_increase(spiral, warp_layers):
+    config = dataclasses.replace(SMALL, decay_rate=0.0, warp_layers=warp_layers)
     policy = _scrambled(make_policy(spiral, config, seed=2))
     x = torch.randn(10_000, 2, dtype=torch.float64)
     _, grad_v = policy.lyapunov.value_and_grad(x)
     lhs = (grad_v * policy.field(x)).sum(-1)
-    assert (lhs <= 1e-12).all()
+    # Rounding of the dot product only: a warped V's gradient reaches 1e3 here.
+    slack = 1e-12 * grad_v.norm(dim=-1) * policy.nominal(x).norm(dim=-1)
+    assert (lhs <= slack).all()
 
 
 @pytest.mark.parametrize("warp_layers", [0, 3])

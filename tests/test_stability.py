@@ -21,9 +21,11 @@ def test_untrained_stable_policy_reaches_the_target_from_everywhere(spiral):
 
 def test_decrease_violations_are_detected_for_an_unprojected_field(spiral):
     x = torch.as_tensor(np.random.default_rng(0).normal(size=(5000, 2)) * 10)
-    stable = make_policy(spiral, SMALL, seed=0)
+    # A warped V, given explicitly: behavioural cloning would otherwise drop the unused warp.
+    config = dataclasses.replace(SMALL, warp_layers=3)
+    stable = make_policy(spiral, config, seed=0)
     # The same networks without the projection: the nominal field ignores V.
-    unprojected = make_policy(spiral, dataclasses.replace(SMALL, stable=False), seed=0)
+    unprojected = make_policy(spiral, dataclasses.replace(config, stable=False), seed=0)
     unprojected.load_state_dict(stable.state_dict())
     assert decrease_violations(stable, x) == 0
     assert decrease_violations(unprojected, x) > 0

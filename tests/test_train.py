@@ -133,7 +133,8 @@ def _nominal_gradient(policy, samples, weight: float) -> tuple[torch.Tensor, tor
         captured["out"] = output
 
     handle = policy.nominal_net.register_forward_hook(keep)
-    config = TrainConfig(batch_size=0, nominal_weight=weight, dtype="float64")
+    # Noise-free: the gradients are compared at the very states of the batch.
+    config = TrainConfig(batch_size=0, nominal_weight=weight, position_noise=0.0, dtype="float64")
     loss = train_module._loss(policy, samples, config, torch.Generator().manual_seed(0))
     loss.backward()
     handle.remove()

@@ -26,7 +26,7 @@ from snds.data import (
 from snds.errors import ConfigError, SNDSError
 from snds.evaluate import evaluate
 from snds.io import load_model, remove_temporaries, save_model, to_jsonable, write_json
-from snds.policy import Policy, PolicyConfig, StablePolicy
+from snds.policy import DEFAULT_WARP_LAYERS, Policy, PolicyConfig, StablePolicy
 from snds.train import CHECKPOINT, TrainConfig, TrainResult, fit
 
 #: ``snds train --architecture`` choices: overrides of :class:`PolicyConfig`'s network sizes.
@@ -160,7 +160,7 @@ def _build_parser() -> argparse.ArgumentParser:
         default=TrainConfig.position_noise,
         help="standard deviation of noise added to the training states (model coordinates, "
         "the data span about [-1, 1]), for demonstrations that run close together at "
-        "different speeds (default 0: off)",
+        f"different speeds (default {TrainConfig.position_noise:g}; 0: off)",
     )
     train.add_argument(
         "--shape-weight",
@@ -194,7 +194,8 @@ def _build_parser() -> argparse.ArgumentParser:
         type=int,
         default=PolicyConfig.warp_layers,
         help="coupling layers of a learned warp inside V, for demonstrations that wind back "
-        "and forth (0: off, V convex; stiffer fields and ~3x training time, see "
+        f"and forth (default {DEFAULT_WARP_LAYERS} for positions of dimension >= 2, 0 in 1-D "
+        "and for SE(3) poses; 0: off, V convex, ~3x faster training, see "
         "benchmarks/README.md)",
     )
     train.add_argument(
@@ -202,7 +203,7 @@ def _build_parser() -> argparse.ArgumentParser:
         type=float,
         default=TrainConfig.warp_weight,
         help="weight of the penalty that keeps the warp's Jacobian near the identity, against "
-        "stiff fields (0: off)",
+        f"stiff fields (default {TrainConfig.warp_weight:g}; 0: off)",
     )
     train.add_argument("--unconstrained", action="store_true", help="behavioural cloning")
     train.add_argument(

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import copy
 from abc import ABC, abstractmethod
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import Any, ClassVar, Protocol
 
 import numpy as np
@@ -20,6 +20,9 @@ from torch import Tensor, nn
 from snds.data.demonstrations import Normalization
 from snds.errors import ConfigError
 from snds.nn import MLP, EuclideanizingFlow, Lyapunov, WarpedLyapunov
+
+#: Coupling layers of V's warp when :attr:`PolicyConfig.warp_layers` is None and n >= 2.
+DEFAULT_WARP_LAYERS = 6
 
 
 def _relu(u: Tensor) -> Tensor:
@@ -90,16 +93,20 @@ class PolicyConfig:
             2.5 there binds only where the data say nothing (0: off).
         near_radius: Radius of that region, in model coordinates.
         warp_layers: Coupling layers of a learned diffeomorphism inside V (0: none, V convex;
-            see :class:`~snds.nn.WarpedLyapunov`; needs n >= 2). A convex V cannot follow a
-            demonstration that winds back and forth: on Messy Snake the demonstrated
-            velocities, projected with the default model's V, already miss by 0.047-0.053 of
-            their mean square, and 6 layers bring the held-out error from 0.074 / 0.115 to
-            0.028 / 0.057 (seeds 0 / 2). Alone they leave the field stiff (largest safe Euler
-            step 5e-7 s against 3e-3 s; 16% of random starts arrive in time); with
-            ``TrainConfig(warp_weight=0.001, position_noise=0.0015)`` all five seeds meet
-            0.05 with every start converged (step 3e-5 s). They cost 2-3x the training time
-            and some accuracy on clean data (LASA Saeghe 0.0119 -> 0.0171 with that recipe),
-            so the warp is off by default (benchmarks/messy_snake.py).
+            see :class:`~snds.nn.WarpedLyapunov`; needs n >= 2). None (the default) takes
+            :data:`DEFAULT_WARP_LAYERS` for n >= 2 and 0 in 1-D, where a convex V fits every
+            motion that reaches the target, and for ``stable=False``; a policy stores the
+            number it took. A convex V
+            cannot follow a demonstration that winds back and forth: on Messy Snake the
+            demonstrated velocities, projected with a convex model's V, already miss by
+            0.047-0.053 of their mean square, and its held-out error is 0.074-0.115 (5 seeds)
+            against the 0.05 bar; with 6 layers, ``TrainConfig.warp_weight`` 0.001 and
+            ``position_noise`` 0.0015 (the defaults) all five seeds meet it, 0.036-0.050, with
+            every start converged. Alone the warp leaves the field stiff (largest safe Euler
+            step 5e-7 s against 3e-3 s; 16% of random starts arrive in time), which the warp
+            penalty prevents (3e-5 s). The warp costs 2.5-3.3x the training time and some
+            velocity error on clean data (median 1.23x on LASA), and brings the rollouts'
+            DTW down 2-3x (benchmarks/messy_snake.py, benchmarks/reliability.py).
         warp_features: Random Fourier features per coupling layer.
         warp_scale: Standard deviation of their frequencies, per unit of model coordinates.
         rectifier: r in the projection ("relu" as in the paper, or "softplus").
@@ -117,15 +124,16 @@ class PolicyConfig:
     decay_far: float = 2.0
     decay_near: float = 2.0
     near_radius: float = 0.2
-    warp_layers: int = 0
+    warp_layers: int | None = None
     warp_features: int = 64
     warp_scale: float = 1.0
     rectifier: str = "relu"
     stable: bool = True
 
     #: Fields added after models were first saved, with the value that reproduces those models
-    #: (a model.json without the field predates it): the near-target decay was off before.
-    BEFORE_ADDED: ClassVar[dict[str, Any]] = {"decay_near": 0.0}
+    #: (a model.json without the field predates it): the near-target decay and the warp were
+    #: off before.
+    BEFORE_ADDED: ClassVar[dict[str, Any]] = {"decay_near": 0.0, "warp_layers": 0}
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "hidden", tuple(self.hidden))
@@ -139,7 +147,8 @@ class PolicyConfig:
                 f"need decay_near >= 0 and near_radius > 0, got {self.decay_near} and "
                 f"{self.near_radius}"
             )
-        if self.warp_layers < 0 or self.warp_features < 1 or not self.warp_scale > 0:
+        layers = 0 if self.warp_layers is None else self.warp_layers
+        if layers < 0 or self.warp_features < 1 or not self.warp_scale > 0:
             raise ConfigError(
                 f"need warp_layers >= 0, warp_features >= 1 and warp_scale > 0, got "
                 f"{self.warp_layers}, {self.warp_features} and {self.warp_scale}"
@@ -295,6 +304,10 @@ class StablePolicy(Policy):
     ) -> None:
         super().__init__(dim=dim, normalization=normalization)
         torch.manual_seed(seed)
+        if config.warp_layers is None:
+            # Behavioural cloning never evaluates V, so its warp would be dead weight.
+            wanted = dim >= 2 and config.stable
+            config = replace(config, warp_layers=DEFAULT_WARP_LAYERS if wanted else 0)
         self.config = config
         self.nominal_net = MLP(
             dim,

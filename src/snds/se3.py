@@ -185,6 +185,8 @@ class PoseConfig(PolicyConfig):
     """Architecture of a pose policy: a :class:`~snds.policy.PolicyConfig` on the 6-D state,
     plus the target pose and the two length scales; saved beside the weights.
 
+    ``warp_layers`` None means 0 here: a warped V has not been measured on poses.
+
     Attributes:
         position_scale: :math:`L_p` in user length units (metres for arm data).
         rotation_scale: :math:`L_r` in radians.
@@ -199,6 +201,10 @@ class PoseConfig(PolicyConfig):
 
     def __post_init__(self) -> None:
         super().__post_init__()
+        # A warped V is unmeasured on poses (the convex one on a 6-D lift of one demonstration
+        # was already stiff without the shape penalty), so the default here is no warp.
+        if self.warp_layers is None:
+            object.__setattr__(self, "warp_layers", 0)
         object.__setattr__(self, "target_position", tuple(map(float, self.target_position)))
         object.__setattr__(self, "target_orientation", tuple(map(float, self.target_orientation)))
         if len(self.target_position) != 3 or len(self.target_orientation) != 4:

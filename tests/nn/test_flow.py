@@ -93,3 +93,28 @@ def test_warp_needs_two_dimensions_and_valid_sizes(spiral):
     for bad in ({"warp_layers": -1}, {"warp_features": 0}, {"warp_scale": 0.0}):
         with pytest.raises(ConfigError, match="warp_layers >= 0"):
             PolicyConfig(**bad)
+
+
+def test_default_warp_is_six_layers_for_positions_and_none_elsewhere(spiral):
+    from snds.data import Normalization
+    from snds.policy import DEFAULT_WARP_LAYERS
+    from snds.se3 import PoseConfig
+
+    def built(dim: int, **fields) -> StablePolicy:
+        normalization = Normalization(center=[0.0] * dim, length=1.0, time=1.0)
+        return StablePolicy(dim=dim, normalization=normalization, config=PolicyConfig(**fields))
+
+    # GIVEN the default architecture (warp_layers None)
+    # THEN a position policy of dimension >= 2 gets the warp and stores the number it took
+    for dim in (2, 3):
+        policy = built(dim)
+        assert policy.config.warp_layers == DEFAULT_WARP_LAYERS == 6
+        assert isinstance(policy.lyapunov, WarpedLyapunov)
+        assert len(policy.lyapunov.warp.layers) == 6
+    # and 1-D states, behavioural cloning and pose policies keep the convex V
+    for policy in (built(1), built(2, stable=False)):
+        assert policy.config.warp_layers == 0 and isinstance(policy.lyapunov, Lyapunov)
+    assert PoseConfig().warp_layers == 0
+    # while an explicit number is taken as given
+    assert built(2, warp_layers=0).config.warp_layers == 0
+    assert built(2, stable=False, warp_layers=2).config.warp_layers == 2

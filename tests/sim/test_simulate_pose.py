@@ -122,8 +122,10 @@ def test_pose_run_recovers_from_the_push(pose_run) -> None:
 
 
 def test_pose_run_keeps_the_joints_within_limits(pose_run) -> None:
-    q = pose_run.joints
-    assert np.all(q >= pose_run.joint_lower) and np.all(q <= pose_run.joint_upper)
+    # This run drives joint 4 onto its lower limit; PyBullet holds a limit as a constraint,
+    # which yields by up to 2.2e-5 rad here: far below an ignored limit's error.
+    q, slack = pose_run.joints, 1e-4
+    assert np.all(q >= pose_run.joint_lower - slack) and np.all(q <= pose_run.joint_upper + slack)
 
 
 def test_pose_record_is_json_with_the_orientation(pose_run) -> None:
