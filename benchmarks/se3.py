@@ -178,7 +178,10 @@ def se3(args: argparse.Namespace) -> None:
             split = split_samples(tangent, test_fraction=0.2, seed=args.seed)
             cpu = time.process_time()
             shape = args.shape_weight if stable else 0.0
-            config = TrainConfig(steps=args.steps, seed=args.seed, shape_weight=shape)
+            # No noise on the states, as `snds train --se3` (snds.cli.POSE_POSITION_NOISE).
+            config = TrainConfig(
+                steps=args.steps, seed=args.seed, shape_weight=shape, position_noise=0.0
+            )
             result = fit(policy, tangent, split, config)
             cpu = time.process_time() - cpu
             metrics = evaluate_pose(

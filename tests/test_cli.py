@@ -45,6 +45,10 @@ def test_train_writes_model_metrics_and_config(trained):
     description = json.loads((trained / "model.json").read_text())
     assert description["train"]["steps"] == 150
     assert description["train"]["shape_weight"] == 0.0  # off for position models
+    # the warped V and its training defaults, recorded as numbers
+    assert description["policy"]["warp_layers"] == 6
+    assert description["train"]["position_noise"] == 0.0015
+    assert description["train"]["warp_weight"] == 0.001
     assert description["train"]["nominal_weight"] == 0.01
     assert description["data"] == {"motion": "Sine", "demos": 3}
 

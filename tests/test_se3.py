@@ -227,8 +227,11 @@ def test_cli_trains_evaluates_and_plots_a_pose_file(pose_demos, tmp_path):
     assert description["kind"] == "se3"
     # --architecture applies to pose policies as to positions.
     assert description["policy"]["hidden"] == [64, 64]
-    # Pose models train with the shape penalty by default (positions do not).
+    # Pose models train with the shape penalty by default, and without the positions' noise
+    # on the states or their warped V.
     assert description["train"]["shape_weight"] == 0.01
+    assert description["train"]["position_noise"] == 0.0
+    assert description["policy"]["warp_layers"] == 0
     metrics = json.loads((out / "metrics.json").read_text())
     assert {"position_dtw", "orientation_error_along", "final_orientation_error"} <= set(metrics)
     assert metrics["stability"]["rollouts"] == 5
