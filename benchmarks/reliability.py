@@ -130,7 +130,7 @@ def check_runs_folder(runs: Path, expected: dict) -> None:
         write_json(record, expected)
 
 
-def _train_real(argv: list[str]) -> float:
+def _snds_train(argv: list[str]) -> float:
     """Runs ``snds`` with these arguments in this worker; returns its CPU seconds."""
     from snds.cli import main
 
@@ -181,7 +181,7 @@ def _run_cli(
             argv += ["--rollouts", str(settings.rollouts), "--samples", str(settings.samples)]
             pending.append((task, seed, directory, argv + ["--out", str(directory)]))
     with ProcessPoolExecutor(max_workers=args.jobs or os.cpu_count()) as pool:
-        futures = {pool.submit(_train_real, job[3]): job for job in pending}
+        futures = {pool.submit(_snds_train, job[3]): job for job in pending}
         for future, (task, seed, directory, _) in futures.items():
             row = _cli_row(part, task, seed, directory, future.result())
             write_json(directory / "row.json", row)

@@ -96,17 +96,17 @@ class PolicyConfig:
             see :class:`~snds.nn.WarpedLyapunov`; needs n >= 2). None (the default) takes
             :data:`DEFAULT_WARP_LAYERS` for n >= 2 and 0 in 1-D, where a convex V fits every
             motion that reaches the target, and for ``stable=False``; a policy stores the
-            number it took. A convex V
-            cannot follow a demonstration that winds back and forth: on Messy Snake the
-            demonstrated velocities, projected with a convex model's V, already miss by
-            0.047-0.053 of their mean square, and its held-out error is 0.074-0.115 (5 seeds)
-            against the 0.05 bar; with 6 layers, ``TrainConfig.warp_weight`` 0.001 and
-            ``position_noise`` 0.0015 (the defaults) all five seeds meet it, 0.036-0.050, with
-            every start converged. Alone the warp leaves the field stiff (largest safe Euler
-            step 5e-7 s against 3e-3 s; 16% of random starts arrive in time), which the warp
-            penalty prevents (3e-5 s). The warp costs 2.5-3.3x the training time and some
-            velocity error on clean data (median 1.23x on LASA), and brings the rollouts'
-            DTW down 2-3x (benchmarks/messy_snake.py, benchmarks/reliability.py).
+            number it took. A convex V cannot follow a demonstration that winds back and
+            forth: on Messy Snake the demonstrated velocities, projected with a convex model's
+            V, already miss by 0.047-0.053 of their mean square, and its held-out error is
+            0.074-0.115 (5 seeds) against the 0.05 bar; with 6 layers,
+            ``TrainConfig.warp_weight`` 0.001 and ``position_noise`` 0.0015 (the defaults) all
+            five seeds meet it, 0.036-0.050, with every start converged. Alone the warp leaves
+            the field stiff (largest safe Euler step 5e-7 s against 3e-3 s; 16% of random
+            starts arrive in time), which the warp penalty prevents (3e-5 s). The warp costs
+            2.5-3.3x the training time and some velocity error on clean data (median 1.23x on
+            LASA), and brings the rollouts' DTW down 2-3x (benchmarks/messy_snake.py,
+            benchmarks/reliability.py).
         warp_features: Random Fourier features per coupling layer.
         warp_scale: Standard deviation of their frequencies, per unit of model coordinates.
         rectifier: r in the projection ("relu" as in the paper, or "softplus").
