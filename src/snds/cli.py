@@ -347,6 +347,14 @@ def _build_parser() -> argparse.ArgumentParser:
     )
     export.add_argument("--seed", type=int, default=0, help="seed of those states")
     export.set_defaults(run=_export)
+
+    app = commands.add_parser(
+        "app", help="a local web page: draw demonstrations, train, push the policy (snds[app])"
+    )
+    app.add_argument("--host", default="127.0.0.1", help="address to bind (default: local only)")
+    app.add_argument("--port", type=int, default=8765, help="port (0: any free port)")
+    app.add_argument("--open", action="store_true", help="open the page in a web browser")
+    app.set_defaults(run=_app)
     return parser
 
 
@@ -678,6 +686,16 @@ def _export(args: argparse.Namespace) -> int:
             f"{check.max_abs_diff:.2e} absolute)"
         )
     return 0
+
+
+def _app(args: argparse.Namespace) -> int:
+    try:
+        from snds.app import serve
+    except ImportError as error:
+        raise ConfigError(
+            f"snds app needs the app extra ({error.name} is missing): pip install 'snds[app]'"
+        ) from None
+    return serve(host=args.host, port=args.port, open_browser=args.open, quiet=args.quiet)
 
 
 def _write_plots(
