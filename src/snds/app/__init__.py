@@ -1,0 +1,13 @@
+"""``snds app``: a local web page to draw demonstrations, train a stable policy on them, and
+push it around (needs the ``app`` extra: ``pip install 'snds[app]'``).
+
+:func:`create_app` is the server (a Starlette application: the JSON API and the page's static
+files), :func:`serve` runs it on uvicorn; :mod:`snds.app.worker` trains in worker processes
+and :mod:`snds.app.strokes` validates the strokes and writes them as the CSV ``snds train``
+reads.
+"""
+
+from snds.app.server import create_app, serve
+from snds.app.strokes import LIMITS, Limits, RequestError
+
+__all__ = ["LIMITS", "Limits", "RequestError", "create_app", "serve"]
