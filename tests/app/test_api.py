@@ -192,10 +192,10 @@ def test_model_zip_evaluates_exports_and_simulates_through_the_cli(
     sim = ["--robot", "iiwa", "--time-limit", "2", "--frames", "0", "--out", str(tmp_path / "sim")]
     assert main(["--quiet", "simulate", str(model), *data, *sim]) == 0
     assert (tmp_path / "sim" / "sim.json").is_file()
-    # And it trains on: snds train reads the downloaded strokes.
-    out = tmp_path / "again"
-    again = ["--steps", "5", "--rollouts", "5", "--samples", "50", "--out", str(out)]
-    assert main(["--quiet", "train", *data, *again]) == 0
+    # And it trains on: the strokes are the file the job trained on (which snds train reads
+    # to the same weights: test_the_run_folder_is_what_snds_train_writes).
+    job_csv = _job(client, job).model / "strokes.csv"
+    assert (model / "strokes.csv").read_bytes() == job_csv.read_bytes()
 
 
 def test_onnx_download_computes_the_policy(client, trained, tmp_path: Path) -> None:
@@ -296,19 +296,24 @@ def test_a_killed_worker_is_an_error_on_its_job_and_the_server_keeps_working(
     assert answer.status_code == 409
     assert answer.json() == {"error": f"job {job} ended without a model (error)"}
     # A new job gets a new worker.
-    again = _long_job(client, helpers)
-    client.delete(f"/api/jobs/{again}")
-    helpers.wait_for(client, again, {"cancelled"})
+    again = client.post(
+        "/api/train", json={"strokes": helpers.strokes(), "settings": {"steps": 100_000}}
+    )
+    assert again.status_code == 202
+    assert _job(client, again.json()["id"]).process.pid != _job(client, job).process.pid
+    client.delete(f"/api/jobs/{again.json()['id']}")
+    helpers.wait_for(client, again.json()["id"], {"cancelled"})
 
 
 def test_shutdown_stops_the_workers_and_removes_the_temporaries(helpers) -> None:
     with TestClient(create_app(), base_url="http://127.0.0.1") as own:
         runs = own.app.state.runs
-        job = _long_job(own, helpers)
-        process = _job(own, job).process
-        assert any(runs.iterdir())
+        body = {"strokes": helpers.strokes(), "settings": {"steps": 100_000}}
+        job = own.post("/api/train", json=body).json()["id"]
+        workers = [_job(own, job).process, own.app.state.jobs.spare]
+        assert (runs / job / "model" / "strokes.csv").is_file()
     assert not runs.exists()
-    assert process.poll() is not None
+    assert all(worker.poll() is not None for worker in workers)
 
 
 # --- Bad input --------------------------------------------------------------------------------

@@ -488,8 +488,10 @@
       ro.position = states[states.length - 1];
       ro.status = ro.arrived ? "arrived" : "stopped";
       const seconds = t[t.length - 1].toFixed(2);
+      const pushes = ro.trail.filter((piece) => piece.push).length;
+      const after = pushes ? ` after ${pushes === 1 ? "a push" : `${pushes} pushes`}` : "";
       say(ro.arrived
-        ? `Reached the target in ${seconds} s${ro.trail.length > 1 ? ` after ${ro.trail.length - 1} push(es)` : ""}.`
+        ? `Reached the target${after}, ${seconds} s from the last start.`
         : `Did not reach the target in ${seconds} s (${ro.answer.integrator}).`, !ro.arrived);
     } else {
       const k = ro.index;
@@ -512,7 +514,9 @@
   canvas.addEventListener("pointerdown", (event) => {
     if (event.button !== 0) return;
     const p = eventWorld(event);
-    canvas.setPointerCapture(event.pointerId);
+    try {
+      canvas.setPointerCapture(event.pointerId);
+    } catch (error) { /* a synthetic pointer has nothing to capture */ }
     const ro = app.rollout;
     if (app.mode === "run") {
       if (ro && ro.position && pixelDistance(p, ro.position) < 16) {

@@ -1,0 +1,156 @@
+"""The page end to end in a real headless browser: Debian's Chromium driven by Playwright.
+
+It draws three strokes with the mouse, trains with tiny settings, waits for the field to be
+drawn, starts a rollout with a click, pushes the moving point with synthetic pointer events
+and waits for it to reach the target, then compares with BC. Screenshots go to a temporary
+folder, or to ``$SNDS_SCREENSHOTS`` (``SNDS_SCREENSHOTS=docs pytest tests/app/test_browser.py``
+makes the README's pictures).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import socket
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("starlette", reason="snds app needs the app extra (pip install 'snds[app]')")
+uvicorn = pytest.importorskip("uvicorn", reason="snds app needs the app extra")
+sync_api = pytest.importorskip(
+    "playwright.sync_api", reason="the browser test needs Playwright (pip install playwright)"
+)
+
+from snds.app import create_app  # noqa: E402
+
+CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
+# Flags for a headless Chromium that reaches nothing but the page's own server.
+CHROMIUM_ARGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+]
+#: The page's query: tiny training settings (``SNDS_APP_QUERY=""`` takes snds train's own
+#: defaults, as for the README's pictures).
+QUERY = os.environ.get("SNDS_APP_QUERY", "steps=30&rollouts=10&samples=200")
+
+pytestmark = pytest.mark.skipif(
+    not Path(CHROMIUM).is_file(),
+    reason="no Chromium installed (apt-get install chromium): the page's browser test needs it",
+)
+
+
+@pytest.fixture(scope="module")
+def url():
+    sock = socket.create_server(("127.0.0.1", 0))
+    server = uvicorn.Server(uvicorn.Config(create_app(), log_level="warning"))
+    thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 30
+    while not server.started:
+        assert time.monotonic() < deadline, "the server did not start"
+        time.sleep(0.05)
+    yield f"http://127.0.0.1:{sock.getsockname()[1]}"
+    server.should_exit = True
+    thread.join(timeout=15)
+
+
+@pytest.fixture(scope="module")
+def page(url):
+    with sync_api.sync_playwright() as playwright:
+        browser = playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        page = browser.new_page(viewport={"width": 1240, "height": 800})
+        page.goto(f"{url}/?{QUERY}")
+        yield page
+        browser.close()
+
+
+@pytest.fixture(scope="module")
+def shots(tmp_path_factory) -> Path:
+    folder = os.environ.get("SNDS_SCREENSHOTS")
+    return Path(folder) if folder else tmp_path_factory.mktemp("screenshots")
+
+
+def _screen(page, world: list[float]) -> tuple[float, float]:
+    box = page.locator("#canvas").bounding_box()
+    x, y = page.evaluate("p => sndsApp.toPixels(p)", world)
+    return box["x"] + x, box["y"] + y
+
+
+# Synthetic pointer events: press on the moving point, drag it by (dx, dy) pixels, release.
+# Dispatched in one go in the page, so the point cannot move away between reading and pressing.
+PUSH = """([dx, dy]) => {
+  const canvas = document.getElementById("canvas");
+  const rect = canvas.getBoundingClientRect();
+  const [x, y] = sndsApp.toPixels(sndsApp.rollout.position);
+  const at = (kind, s) => canvas.dispatchEvent(new PointerEvent(kind, {
+    clientX: rect.left + x + s * dx, clientY: rect.top + y + s * dy,
+    button: 0, pointerId: 7, pointerType: "pen", bubbles: true }));
+  at("pointerdown", 0);
+  for (let k = 1; k <= 10; k++) at("pointermove", k / 10);
+  at("pointerup", 1);
+}"""
+
+
+def test_draw_train_push_and_compare_with_bc(page, shots: Path, helpers) -> None:
+    # GIVEN three strokes drawn with the mouse
+    for stroke in helpers.strokes(3, points=60):
+        first = _screen(page, stroke[0][:2])
+        page.mouse.move(*first)
+        page.mouse.down()
+        for point in stroke[1:]:
+            page.mouse.move(*_screen(page, point[:2]))
+        page.mouse.up()
+    assert page.evaluate("sndsApp.strokes.length") == 3
+    assert page.evaluate("sndsApp.strokes.every(s => s.length > 30)")
+    page.screenshot(path=str(shots / "app_strokes.png"))
+
+    # WHEN the page trains on them
+    page.click("#train")
+    page.wait_for_function("sndsApp.drawn.snds", timeout=120_000)
+    page.wait_for_function("sndsApp.jobs.snds.status.state === 'done'", timeout=120_000)
+    # THEN the field and V are drawn, with the stability check's numbers
+    assert page.evaluate("sndsApp.jobs.snds.field.V !== null")
+    check = page.evaluate("sndsApp.jobs.snds.status.metrics.stability")
+    assert check["converged_fraction"] == 1.0 and check["decrease_violations"] == 0
+    assert page.text_content("#snds-converged") == f"100.0% of {check['rollouts']}"
+    assert page.text_content("#snds-violations") == f"0 of {check['samples_checked']}"
+    assert page.text_content("#snds-safe").endswith(" s")
+    assert page.text_content("#progress-label").startswith("SNDS: done in ")
+
+    # WHEN a click starts a rollout and the moving point is pushed away
+    page.mouse.click(*_screen(page, [-85.0, 55.0]))
+    page.wait_for_function("sndsApp.rollout && sndsApp.rollout.status === 'running'")
+    time.sleep(0.3)
+    page.evaluate(PUSH, [-70, 60])
+    # THEN it recovers and reaches the target
+    page.wait_for_function("sndsApp.rollout.status === 'arrived'", timeout=60_000)
+    rollout = page.evaluate(
+        "({pieces: sndsApp.rollout.trail.length, pushed: sndsApp.rollout.trail[1].push,"
+        " distance: sndsApp.rollout.finalDistance, tolerance: sndsApp.rollout.tolerance})"
+    )
+    assert rollout["pieces"] == 3 and rollout["pushed"] is True
+    assert rollout["distance"] <= rollout["tolerance"]
+    assert page.text_content("#status").startswith("Reached the target after a push")
+    page.screenshot(path=str(shots / "app_trained.png"))
+
+    # WHEN behavioural cloning is trained on the same strokes (the toggle)
+    page.click("#bc")
+    page.wait_for_function("sndsApp.drawn.bc", timeout=120_000)
+    page.wait_for_function("sndsApp.jobs.bc.status.state === 'done'", timeout=120_000)
+    # THEN its field has no V, and its check is shown beside SNDS's
+    assert page.evaluate("sndsApp.jobs.bc.field.V === null")
+    assert page.text_content("#bc-violations") == "no V"
+    assert page.text_content("#bc-converged").endswith(f"% of {check['rollouts']}")
+    page.mouse.click(*_screen(page, [-85.0, 55.0]))
+    page.wait_for_function("sndsApp.rollout && sndsApp.rollout.status === 'running'")
+    time.sleep(1.5)
+    page.screenshot(path=str(shots / "app_bc.png"))
