@@ -210,12 +210,25 @@ def test_warp_penalty_is_the_jacobians_distance_from_the_identity(spiral):
     with torch.no_grad():
         for p in warp.parameters():
             p.add_(torch.randn_like(p))
-    # THEN it is E |J - I|_F^2 over [-2, 2]^2, J from autograd, and it trains the warp
+    # THEN with its own states and probes it is mean |(J - I) u|^2, J from autograd ...
     penalty = train_module.warp_penalty(warp, 2, torch.Generator().manual_seed(1))
-    x = torch.rand(256, 2, generator=torch.Generator().manual_seed(1)).double() * 4 - 2
+    replay = torch.Generator().manual_seed(1)
+    x = torch.rand(256, 2, generator=replay).double() * 4 - 2
+    u = torch.randn(256, 2, generator=replay).double()
     jacobian = torch.autograd.functional.jacobian(lambda y: warp(y).sum(0), x).permute(1, 0, 2)
-    expected = ((jacobian - torch.eye(2, dtype=torch.float64)) ** 2).sum((-2, -1)).mean()
+    eye = torch.eye(2, dtype=torch.float64)
+    expected = ((((jacobian - eye) @ u.unsqueeze(-1)).squeeze(-1)) ** 2).sum(-1).mean()
     torch.testing.assert_close(penalty, expected, rtol=1e-10, atol=0.0)
+    # ... an unbiased estimate of E |J - I|_F^2 (mean of 200 draws within 5 standard errors)
+    draws = torch.stack(
+        [train_module.warp_penalty(warp, 2, torch.Generator().manual_seed(k)) for k in range(200)]
+    ).detach()
+    x = torch.rand(100_000, 2, generator=torch.Generator().manual_seed(7)).double() * 4 - 2
+    _, caches = warp.forward_with_caches(x)
+    with torch.no_grad():
+        columns = [warp.jvp(caches, e.expand_as(x)) for e in eye]
+        frobenius = ((torch.stack(columns, -1) - eye) ** 2).sum((-2, -1)).mean()
+    assert abs(draws.mean() - frobenius) < 5 * draws.std() / 200**0.5
     penalty.backward()
     # (a layer's bias only translates, so it does not enter J)
     assert all(layer.weight.grad.abs().sum() > 0 for layer in warp.layers)

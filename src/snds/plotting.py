@@ -367,8 +367,9 @@ def plot_all(
             rng.uniform(low, high, size=(6, demos.dim)),
         ]
     )
-    rollouts = rollout_numpy(policy, starts, dt=dt, steps=steps)
-    perturbed = rollout_numpy(policy, perturbed_starts, dt=dt, steps=steps)
+    # One batch for both sets of starts: a step costs about the same for 7 states as for 20.
+    both = rollout_numpy(policy, np.concatenate([starts, perturbed_starts]), dt=dt, steps=steps)
+    rollouts, perturbed = both[: len(starts)], both[len(starts) :]
 
     paths = [
         plot_streamlines(

@@ -70,7 +70,7 @@ def guarded_step(
     lyapunov: Lyapunov,
     x: Tensor,
     *,
-    dt: float,
+    dt: float | Tensor,
     rate: Rate | None = None,
     sufficient: float = 0.5,
     max_halvings: int = 30,
@@ -98,7 +98,7 @@ def guarded_step(
         field: The velocity field, (B, n) -> (B, n).
         lyapunov: V, (B, n) -> (B,).
         x: States, shape (B, n).
-        dt: The nominal step.
+        dt: The nominal step, one for all states or one per state, shape (B,).
         rate: The promised decrease rate a(x) of V per unit of time, given the states and
             their values; None asks only that V drop.
         sufficient: The fraction c of the promised decrease a step must achieve.
@@ -115,7 +115,7 @@ def guarded_step(
     if value is None:
         value = lyapunov(x)
     required = torch.zeros_like(value) if rate is None else sufficient * rate(x, value)
-    h = torch.full_like(value, dt)
+    h = dt.to(value).clone() if isinstance(dt, Tensor) else torch.full_like(value, dt)
     candidate = advance(x, h, velocity)
     new = lyapunov(candidate)
 

@@ -103,8 +103,9 @@ def decrease_violations(policy: Policy, x: torch.Tensor, *, rtol: float = 1e-9) 
     """
     xm = policy.to_model(x)
     value, grad = policy.lyapunov.value_and_grad(xm)
-    f = policy.nominal(xm)
-    pi = policy.field(xm)
+    pi, f = policy.field_and_nominal(xm)
+    if f is None:
+        f = policy.nominal(xm)
     decay = policy.decay(value, xm)
     lhs = (grad * pi).sum(-1)
     scale = grad.norm(dim=-1) * f.norm(dim=-1) + decay
@@ -113,14 +114,14 @@ def decrease_violations(policy: Policy, x: torch.Tensor, *, rtol: float = 1e-9) 
 
 @torch.no_grad()
 def largest_safe_step(
-    policy: Policy, x: torch.Tensor, *, upper: float, iterations: int = 40
+    policy: Policy, x: torch.Tensor, *, upper: float, iterations: int = 60
 ) -> float:
     r"""The largest Euler step h with :math:`V(x + h \pi(x)) \le V(x)` at every given state.
 
     Along a descent direction of a convex V, :math:`h \mapsto V(x + h \pi(x))` is convex and
     starts decreasing, so the steps that decrease V form an interval :math:`(0, h^*(x))`; the
-    largest step safe at every state is :math:`\min_x h^*(x)`, found by bisection (in log
-    scale) on one shared h. For a V that is not convex (a warped V, SDS-EF's) the safe steps
+    largest step safe at every state is :math:`\min_x h^*(x)`, found by halving, then bisection
+    on one shared h. For a V that is not convex (a warped V, SDS-EF's) the safe steps
     of a state need not form an interval, and the answer is a heuristic: every given state is
     safe at the step returned, not necessarily at every shorter one.
 
@@ -128,10 +129,11 @@ def largest_safe_step(
         policy: A stable policy, in the dtype of ``x``.
         x: States in user units, shape (B, n); the target itself is skipped.
         upper: The largest step tried, in seconds.
-        iterations: Bisection steps.
+        iterations: Halvings of ``upper`` tried before giving up.
 
     Returns:
-        The step in seconds (``upper`` if every state is safe at ``upper``; 0 if none is).
+        The step in seconds, to a relative precision of 1e-7 (``upper`` if every state is
+        safe at ``upper``; 0 if none is safe at ``upper`` / 2^iterations).
     """
     xm = policy.to_model(x)
     xm = xm[xm.norm(dim=-1) > 0]
@@ -150,11 +152,18 @@ def largest_safe_step(
 
     if safe(upper):
         return upper
-    low, high = upper * 1e-12, upper
-    if not safe(low):
-        return 0.0
+    # Bracket by halving (a safe step is usually within a few octaves of ``upper``), then
+    # bisect the octave to a relative precision of 1e-7.
+    high = upper
     for _ in range(iterations):
-        middle = (low * high) ** 0.5
+        low = 0.5 * high
+        if safe(low):
+            break
+        high = low
+    else:
+        return 0.0
+    while high - low > 1e-7 * low:
+        middle = 0.5 * (low + high)
         low, high = (middle, high) if safe(middle) else (low, middle)
     return low
 
@@ -171,6 +180,7 @@ def check_stability(
     tolerance_factor: float = 0.01,
     samples: int = 100_000,
     sample_box_factor: float = 10.0,
+    step_tolerance_factor: float = 3e-3,
     seed: int = 0,
     chunk: int = 20_000,
 ) -> StabilityReport:
@@ -207,7 +217,6 @@ def check_stability(
     target = demos.target
     dt = demos.mean_dt()
     horizon = horizon_factor * demos.max_duration()
-    steps = int(np.ceil(horizon / dt))
     tolerance = tolerance_factor * extent
     half_width = box_factor * extent
     if grid:
@@ -216,13 +225,20 @@ def check_stability(
         points = _uniform_box(target, half_width, rollouts, rng)
     starts = torch.as_tensor(points)
     arrivals = _roll_out_and_settle(
-        policy, starts, torch.tensor(target), dt=dt, steps=steps, tolerance=tolerance
+        policy,
+        starts,
+        torch.tensor(target),
+        dt=dt,
+        horizon=horizon,
+        tolerance=tolerance,
+        step_tolerance=step_tolerance_factor * extent,
+        max_step=horizon / 50,
     )
-    final, arrived = arrivals.final_distance, arrivals.arrival_step
+    final = arrivals.final_distance
     attractors, moving = _stalled(
         policy, arrivals.final_state[final > tolerance], speed=demos.max_speed(), extent=extent
     )
-    times = arrived[arrived >= 0].double() * dt
+    times = arrivals.arrival_time[~arrivals.arrival_time.isnan()]
     violations, checked = 0, 0
     safe_dt = safe_dt_rollouts = float("nan")
     if policy.stable:
@@ -317,9 +333,10 @@ def settle_level(lyapunov: torch.nn.Module, radius: float, *, dim: int, count: i
 class _Arrivals:
     final_state: torch.Tensor  # (B, n)
     final_distance: torch.Tensor  # (B,)
-    arrival_step: torch.Tensor  # (B,), -1 if not within the tolerance at the end
-    shortened: torch.Tensor  # (B,) bool, a step of the rollout was shortened by the guard
+    arrival_time: torch.Tensor  # (B,), NaN if not within the tolerance at the end
+    shortened: torch.Tensor  # (B,) bool: plain Euler at dt would not decrease V on the way
     visited: torch.Tensor  # (M, n), states along the rollouts (every ``every`` steps)
+    steps: int  # integration steps of the longest rollout
 
 
 @torch.no_grad()
@@ -329,51 +346,89 @@ def _roll_out_and_settle(
     target: torch.Tensor,
     *,
     dt: float,
-    steps: int,
+    horizon: float,
     tolerance: float,
+    step_tolerance: float,
+    max_step: float,
     every: int = 10,
 ) -> _Arrivals:
-    """Rollouts that stop integrating each start once it has settled for good.
+    r"""Adaptive guarded Euler rollouts that stop integrating each start once it has settled.
 
-    A policy with a Lyapunov function is integrated with the guarded Euler step
-    (:func:`snds.rollout.guarded_step`), the discrete-time counterpart of its guarantee, and
-    each rollout records whether a step had to be shortened (where it did not, the rollout is
-    exactly the plain Euler one). The sublevel set {V < c} of :func:`settle_level` lies inside
-    the ball of radius r = tolerance / 2, and guarded steps never leave it since they never
-    increase V. A start whose state enters that set is settled: it would still be within the
-    tolerance at the end of the horizon, so it is no longer integrated. This makes the check
-    cost the time the rollouts take to arrive, not the whole horizon. A policy without a
-    Lyapunov function takes plain Euler steps for the whole horizon.
+    Each rollout takes Euler steps whose length follows the local error: the estimate
+    :math:`e = \tfrac{h}{2} |\pi(x_{k+1}) - \pi(x_k)|` (the leading term of Euler's local
+    error, from the velocity the next step needs anyway) is kept below ``step_tolerance``
+    (user units) by rejecting a step that exceeds it and by growing or shrinking the next one
+    as :math:`h \sqrt{\text{tol} / e}`, between ``dt`` / 2^30 and ``max_step``. Where the field
+    is smooth (far out, and on the final approach) steps grow far beyond the data's period; in
+    the demonstrations' bends they stay near it. A policy with a Lyapunov function also takes
+    the guarded step (:func:`snds.rollout.guarded_step`, Armijo's condition on V), so V falls
+    at every accepted step. The sublevel set {V < c} of :func:`settle_level` lies inside the
+    ball of radius tolerance / 2, and guarded steps never leave it: a start whose state enters
+    it is settled and no longer integrated, so the check costs the time rollouts take to
+    arrive. A policy without a Lyapunov function integrates to the horizon.
+
+    ``shortened`` marks the rollouts at one of whose recorded states plain Euler at the data's
+    step ``dt`` would not have met the guard's condition.
     """
+    count = len(starts)
     x = starts.clone()
-    active = torch.arange(len(starts))
-    last_outside = torch.full((len(starts),), -1, dtype=torch.long)
-    shortened = torch.zeros(len(starts), dtype=torch.bool)
-    visited = []
-    level = None
+    time = torch.zeros(count, dtype=x.dtype)
+    h = torch.full((count,), dt, dtype=x.dtype)
+    # Time since which each rollout has been within the tolerance (NaN while outside).
+    arrival = torch.zeros(count, dtype=x.dtype)
+    active = torch.arange(count)
+    visited, owners = [], []
+    level = value = lyapunov = rate = None
     if policy.stable:
         radius = 0.5 * tolerance / policy.normalization.length
         level = settle_level(policy.lyapunov, radius, dim=starts.shape[-1])
         lyapunov, rate = policy_guard(policy)
-        # V at every state, kept from the guarded steps, which compute it anyway.
         value = lyapunov(x)
-    for step in range(steps + 1):
-        if step > 0 and level is not None:
-            x[active], h, value[active] = guarded_step(
-                policy, lyapunov, x[active], dt=dt, rate=rate, value=value[active]
+    velocity = policy(x)
+    arrival[(x - target).norm(dim=-1) > tolerance] = float("nan")
+    steps = 0
+    while len(active):
+        xa, va, ha = x[active], velocity[active], h[active]
+        # The last step ends exactly at the horizon.
+        ha = torch.minimum(ha, horizon - time[active])
+        if value is not None:
+            candidate, ha, new = guarded_step(
+                lambda _, v=va: v, lyapunov, xa, dt=ha, rate=rate, value=value[active]
             )
-            shortened[active[h < dt]] = True
-        elif step > 0:
-            x[active] = x[active] + dt * policy(x[active])
-        outside = (x[active] - target).norm(dim=-1) > tolerance
-        last_outside[active[outside]] = step
-        if step % every == 0:
+        else:
+            candidate, new = xa + ha.unsqueeze(-1) * va, None
+        v_new = policy(candidate)
+        error = 0.5 * ha * (v_new - va).norm(dim=-1)
+        accept = (error <= step_tolerance) | (ha <= dt * 2.0**-30)
+        grow = (0.9 * (step_tolerance / error.clamp_min(1e-300)).sqrt()).clamp(0.2, 4.0)
+        h[active] = torch.where(accept, ha * grow, ha * grow.clamp_max(0.9)).clamp_max(max_step)
+        done = active[accept]
+        x[done], velocity[done] = candidate[accept], v_new[accept]
+        time[done] = time[done] + ha[accept]
+        if value is not None:
+            value[done] = new[accept]
+        outside = (x[done] - target).norm(dim=-1) > tolerance
+        arrival[done[outside]] = float("nan")
+        entered = done[~outside & arrival[done].isnan()]
+        arrival[entered] = time[entered]
+        steps += 1
+        if steps % every == 0:
             visited.append(x[active].clone())
-            if level is not None:
-                active = active[value[active] >= level]
-        if len(active) == 0:
-            break
+            owners.append(active.clone())
+        finished = time[active] >= horizon * (1 - 1e-12)
+        if level is not None:
+            finished = finished | (value[active] < level)
+        active = active[~finished]
+    visited.append(x.clone())
+    owners.append(torch.arange(count))
+    visited_states, visited_owner = torch.cat(visited), torch.cat(owners)
+    shortened = torch.zeros(count, dtype=torch.bool)
+    if lyapunov is not None:
+        before = lyapunov(visited_states)
+        moved = visited_states + dt * policy(visited_states)
+        required = 0.5 * dt * rate(visited_states, before)
+        after = lyapunov(moved)
+        bad = ~((after <= before - required) & (after < before)) & (before > 0)
+        shortened[visited_owner[bad]] = True
     final = (x - target).norm(dim=-1)
-    inside = final <= tolerance
-    arrival = torch.where(inside, last_outside + 1, torch.full_like(last_outside, -1))
-    return _Arrivals(x, final, arrival, shortened, torch.cat(visited))
+    return _Arrivals(x, final, arrival, shortened, visited_states, steps)

@@ -18,12 +18,24 @@ from torch import Tensor, nn
 
 @dataclass
 class LayerCache:
-    """What a coupling layer's Jacobian needs from its forward pass (B rows)."""
+    """What a coupling layer's Jacobian needs from its forward pass (B rows).
 
-    stretched: Tensor  # (B, n) x * exp(s), x the layer's input
+    For an additive layer (s = 0) ``stretched``, ``stretch`` and ``slope`` are None: the
+    Jacobian is then :math:`I + C` and needs only the angles.
+    """
+
+    stretched: Tensor | None  # (B, n) x * exp(s), x the layer's input
     angles: Tensor  # (B, m) the Fourier angles
-    stretch: Tensor  # (B, n) exp(s), 1 on the conditioning coordinates
-    slope: Tensor  # (B, n) ds/d(raw s) = 1 - tanh^2
+    stretch: Tensor | None  # (B, n) exp(s), 1 on the conditioning coordinates
+    slope: Tensor | None  # (B, n) ds/d(raw s) = 1 - tanh^2
+    weight: Tensor  # (m, k) W with the amplitude and the mask of x_b's columns applied
+    sines: Tensor | None = None  # (B, m) sin of the angles, computed once when first needed
+
+    def sin(self) -> Tensor:
+        """sin of the Fourier angles, (B, m); the Jacobian products need it, V alone does not."""
+        if self.sines is None:
+            self.sines = torch.sin(self.angles)
+        return self.sines
 
 
 class RFFCoupling(nn.Module):
@@ -78,84 +90,86 @@ class RFFCoupling(nn.Module):
         mask[conditioning] = 1.0
         # Derived from (dim, layer), so not saved: a model file rebuilds it from the config.
         self.register_buffer("transformed", 1.0 - mask, persistent=False)
+        columns = 1.0 - mask if max_log_scale <= 0 else torch.cat([1.0 - mask, 1.0 - mask])
+        # Mask of W's columns that act on x_b, (2n,) or (n,) if additive, and the same with
+        # the features' amplitude sqrt(2/m), which multiplies the weights rather than being
+        # addmm's alpha: ONNX exports alpha as Gemm's float32 attribute, which rounded it and
+        # put a float64 export of a warped policy 1e-3 (relative) off the library.
+        self.amplitude = math.sqrt(2.0 / features)
+        self.register_buffer("columns", columns, persistent=False)
+        self.register_buffer(
+            "scaled_columns", columns * self.amplitude, persistent=False
+        )
         self.dim = dim
         self.max_log_scale = max_log_scale
         self.affine = max_log_scale > 0
         frequencies = torch.randn(dim, features, generator=generator) * (2 * math.pi * scale)
         self.register_buffer("frequencies", frequencies * mask.unsqueeze(-1))
         self.register_buffer("phases", torch.rand(features, generator=generator) * 2 * math.pi)
-        self.amplitude = math.sqrt(2.0 / features)
         # Columns [0, n) give s_raw and [n, 2n) give t (only t, n columns, if additive);
         # those of x_a are masked out (and so get no gradient).
         outputs = 2 * dim if self.affine else dim
         self.weight = nn.Parameter(torch.zeros(features, outputs))
         self.bias = nn.Parameter(torch.zeros(outputs))
 
-    def _conditioner(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """s, t (each (B, n), zero on x_a), the slope 1 - tanh^2 of s (B, n) and the Fourier
-        angles (B, m)."""
+    def _conditioner(self, x: Tensor) -> tuple[Tensor | None, Tensor, Tensor | None, LayerCache]:
+        """s (None if additive), t (each (B, n), zero on x_a), the slope 1 - tanh^2 of s
+        (B, n; None if additive) and the cache's angles and weights."""
         # Masking W's columns (not the (B, n) outputs) zeroes s and t on x_a at the cost of
         # one small product per call, and those columns then get no gradient.
-        columns = self._columns()
+        weight = self.weight * self.scaled_columns
         angles = torch.addmm(self.phases, x, self.frequencies)
-        # The amplitude goes into the weights, not into addmm's alpha: ONNX exports alpha as
-        # Gemm's float32 attribute, which rounded sqrt(2/m) and put a float64 export of a
-        # warped policy 1e-3 (relative) off the library far from the data.
-        raw = torch.addmm(
-            self.bias * columns, torch.cos(angles), self.weight * (columns * self.amplitude)
-        )
+        raw = torch.addmm(self.bias * self.columns, torch.cos(angles), weight)
+        cache = LayerCache(None, angles, None, None, weight)
         if not self.affine:
-            return torch.zeros_like(x), raw, torch.zeros_like(x), angles
+            return None, raw, None, cache
         squashed = torch.tanh(raw[:, : self.dim] / self.max_log_scale)
-        return (
-            self.max_log_scale * squashed,
-            raw[:, self.dim :],
-            1.0 - squashed * squashed,
-            angles,
-        )
+        return self.max_log_scale * squashed, raw[:, self.dim :], 1.0 - squashed * squashed, cache
 
     def forward(self, x: Tensor) -> tuple[Tensor, LayerCache]:
         """Maps states (B, n) to (B, n) and keeps what the Jacobian needs."""
-        s, t, slope, angles = self._conditioner(x)
+        s, t, slope, cache = self._conditioner(x)
+        if s is None:
+            return x + t, cache
         stretch = torch.exp(s)
         stretched = x * stretch
-        return stretched + t, LayerCache(stretched, angles, stretch, slope)
+        cache.stretched, cache.stretch, cache.slope = stretched, stretch, slope
+        return stretched + t, cache
 
     def inverse(self, y: Tensor) -> Tensor:
         """The inverse map, (B, n) -> (B, n): :math:`x_b = (y_b - t(y_a)) e^{-s(y_a)}`."""
         s, t, _, _ = self._conditioner(y)
-        return (y - t) * torch.exp(-s)
+        return y - t if s is None else (y - t) * torch.exp(-s)
 
     def _c_times(self, cache: LayerCache, w: Tensor) -> Tensor:
         """C w_a, shape (B, n), zero on x_a; only w_a matters (Omega's x_b rows are zero)."""
-        # sin is computed here, not in forward: evaluating phi or V alone does not need it.
-        d_features = torch.sin(cache.angles) * (w @ self.frequencies)
-        d_raw = (d_features @ self.weight) * (-self.amplitude * self._columns())
-        if not self.affine:
+        d_features = cache.sin() * (w @ self.frequencies)
+        d_raw = -(d_features @ cache.weight)
+        if cache.stretch is None:
             return d_raw
         return cache.stretched * cache.slope * d_raw[:, : self.dim] + d_raw[:, self.dim :]
 
-    def _columns(self) -> Tensor:
-        """Mask of W's columns that act on x_b, shape (2n,), or (n,) if additive."""
-        if not self.affine:
-            return self.transformed
-        return torch.cat([self.transformed, self.transformed])
-
     def jvp(self, cache: LayerCache, w: Tensor) -> Tensor:
         """J w for tangents w (B, n) at the layer's input: :math:`(w_a, e^s w_b + C w_a)`."""
+        if cache.stretch is None:
+            return w + self._c_times(cache, w)
         return cache.stretch * w + self._c_times(cache, w)
 
     def solve(self, cache: LayerCache, v: Tensor) -> Tensor:
         r"""J^{-1} v for v (B, n) by forward substitution: :math:`w_a = v_a`,
         :math:`w_b = e^{-s} (v_b - C v_a)`."""
+        if cache.stretch is None:
+            return v - self._c_times(cache, v)
         return (v - self._c_times(cache, v)) / cache.stretch
 
     def vjp(self, cache: LayerCache, g: Tensor) -> Tensor:
         r"""J^T g for cotangents g (B, n): :math:`(g_a + C^\top g_b, e^s g_b)`."""
-        grad_raw = torch.cat([g * cache.stretched * cache.slope, g], -1) if self.affine else g
-        weight = self.weight * (-self.amplitude * self._columns())
-        d_features = torch.sin(cache.angles) * (grad_raw @ weight.T)
-        return cache.stretch * g + d_features @ self.frequencies.T
+        if cache.stretch is None:
+            d_features = cache.sin() * (g @ cache.weight.T)
+            return g - d_features @ self.frequencies.T
+        grad_raw = torch.cat([g * cache.stretched * cache.slope, g], -1)
+        d_features = cache.sin() * (grad_raw @ cache.weight.T)
+        return cache.stretch * g - d_features @ self.frequencies.T
 
 
 class EuclideanizingFlow(nn.Module):
