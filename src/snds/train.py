@@ -8,7 +8,7 @@ import json
 import math
 import sys
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import torch
@@ -249,7 +249,7 @@ def fit(
             save_checkpoint(Path(checkpoint), state, identity, policy, optimizer, generator)
         loss = _loss(policy, samples, config, generator)
         value = float(loss.detach())
-        diverged = not math.isfinite(value) or value > 1e3 * max(state.best, 1e-8)
+        diverged = _diverged(value, state)
         if not diverged:
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
@@ -261,29 +261,9 @@ def fit(
             # state included.
             diverged = not bool(torch.isfinite(norm))
         if diverged:
-            result.restarts += 1
-            if result.restarts > config.max_restarts:
-                raise TrainingError(
-                    f"loss or its gradient diverged {result.restarts} times (last loss "
-                    f"{value:.3g}); try a lower lr"
-                )
-            policy.load_state_dict(state.good)
-            optimizer = _adam(policy, config)
-            state.lr_scale *= 0.5
+            optimizer = _restart(policy, state, config, value)
             continue
-        for group in optimizer.param_groups:
-            group["lr"] = state.lr_scale * _learning_rate(step, config)
-        optimizer.step()
-        result.history.append(value)
-        state.smoothed = (
-            value if state.smoothed == math.inf else 0.95 * state.smoothed + 0.05 * value
-        )
-        if state.smoothed < state.best * (1 - config.min_improvement):
-            state.best, state.since_best = state.smoothed, 0
-            if step % 50 == 0:
-                state.good = copy.deepcopy(policy.state_dict())
-        else:
-            state.since_best += 1
+        _step(policy, optimizer, state, config, value)
         if step % 20 == 0:
             bar.set_postfix(loss=f"{state.smoothed:.2e}")
         if config.patience and state.since_best >= config.patience:
@@ -302,6 +282,49 @@ def fit(
             # without training again.
             save_checkpoint(Path(checkpoint), state, identity, policy, optimizer, generator)
     return result
+
+
+def _diverged(value: float, state: _State) -> bool:
+    """Whether a step's loss is NaN or jumped far above the best smoothed loss so far."""
+    return not math.isfinite(value) or value > 1e3 * max(state.best, 1e-8)
+
+
+def _restart(policy: Policy, state: _State, config: TrainConfig, value: float) -> torch.optim.Adam:
+    """Restores the last good weights after a diverged step; returns a new Adam (the rate is
+    halved through ``state.lr_scale``).
+
+    Raises:
+        TrainingError: After ``config.max_restarts`` restarts.
+    """
+    state.result.restarts += 1
+    if state.result.restarts > config.max_restarts:
+        raise TrainingError(
+            f"loss or its gradient diverged {state.result.restarts} times (last loss "
+            f"{value:.3g}); try a lower lr"
+        )
+    policy.load_state_dict(state.good)
+    optimizer = _adam(policy, config)
+    state.lr_scale *= 0.5
+    return optimizer
+
+
+def _step(
+    policy: Policy, optimizer: torch.optim.Adam, state: _State, config: TrainConfig, value: float
+) -> None:
+    """Steps on the (clipped) gradient at ``state.step`` and books the step's loss: history,
+    smoothed loss, best and patience counter, and now and then the good state to restart from."""
+    step = state.step
+    for group in optimizer.param_groups:
+        group["lr"] = state.lr_scale * _learning_rate(step, config)
+    optimizer.step()
+    state.result.history.append(value)
+    state.smoothed = value if state.smoothed == math.inf else 0.95 * state.smoothed + 0.05 * value
+    if state.smoothed < state.best * (1 - config.min_improvement):
+        state.best, state.since_best = state.smoothed, 0
+        if step % 50 == 0:
+            state.good = copy.deepcopy(policy.state_dict())
+    else:
+        state.since_best += 1
 
 
 # Checkpoints: the whole optimisation state in one safetensors file (tensors), with the
@@ -451,19 +474,50 @@ def _restore(
     return state
 
 
+@dataclass(frozen=True)
+class _StepInputs:
+    """What one step's loss is evaluated on: its mini-batches and the penalties' random
+    states, drawn by :func:`_draw_step` (model coordinates; None where the term is off).
+
+    Attributes:
+        positions: The velocity term's states, position noise added, shape (B, n).
+        velocities: Their demonstrated velocities, shape (B, n).
+        windows: The window term's starts (M, n), targets (M, Nw, n) and steps (M, Nw).
+        shape_states: The shape penalty's states, shape (256, n).
+        warp_draws: The warp penalty's random inputs (see :func:`_warp_draws`).
+    """
+
+    positions: torch.Tensor
+    velocities: torch.Tensor
+    windows: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
+    shape_states: torch.Tensor | None = None
+    warp_draws: tuple[torch.Tensor, ...] | None = None
+
+
 def _loss(
     policy: StablePolicy, samples, config: TrainConfig, generator: torch.Generator
 ) -> torch.Tensor:
+    return _step_loss(policy, config, _draw_step(policy, samples, config, generator))
+
+
+def _warp_of(policy: Policy) -> EuclideanizingFlow | None:
+    """The diffeomorphism inside a policy's V, if it has one."""
+    return getattr(getattr(policy, "lyapunov", None), "warp", None)
+
+
+def _draw_step(
+    policy: StablePolicy, samples: Samples, config: TrainConfig, generator: torch.Generator
+) -> _StepInputs:
+    """Draws one step's random inputs from the fit's generator: the one place that does, in
+    a fixed order (batch, noise, windows, shape states, warp draws), so a batched fit
+    (:mod:`snds.batched`) draws exactly what :func:`fit` draws."""
     index = _batch(config.batch_size, len(samples.positions), generator, config.device)
     x, v = samples.positions, samples.velocities
     if index is not None:
         x, v = x[index], v[index]
     if config.position_noise:
         x = x + config.position_noise * torch.randn(x.shape, generator=generator).to(x)
-    pi, f = policy.field_and_nominal(x)
-    loss = config.velocity_weight * velocity_loss(pi, v, config.velocity_shape)
-    if config.nominal_weight and f is not None:
-        loss = loss + config.nominal_weight * velocity_loss(f, v, config.velocity_shape)
+    inputs = _StepInputs(positions=x, velocities=v)
     if config.window and len(samples.window_starts):
         index = _batch(
             config.window_batch_size, len(samples.window_starts), generator, config.device
@@ -475,13 +529,37 @@ def _loss(
         )
         if index is not None:
             starts, targets, steps = starts[index], targets[index], steps[index]
-        loss = loss + window_loss(policy.field, starts, targets, steps)
+        inputs = replace(inputs, windows=(starts, targets, steps))
+    param = next(policy.parameters())
     if config.shape_weight and policy.stable:
-        loss = loss + config.shape_weight * shape_penalty(policy, x.shape[-1], generator)
-    warp = getattr(getattr(policy, "lyapunov", None), "warp", None)
-    if config.warp_weight and warp is not None and policy.stable:
-        loss = loss + config.warp_weight * warp_penalty(warp, x.shape[-1], generator)
+        inputs = replace(inputs, shape_states=_uniform_states(x.shape[-1], generator, param))
+    if config.warp_weight and _warp_of(policy) is not None and policy.stable:
+        inputs = replace(inputs, warp_draws=_warp_draws(x.shape[-1], generator, param))
+    return inputs
+
+
+def _step_loss(policy: StablePolicy, config: TrainConfig, inputs: _StepInputs) -> torch.Tensor:
+    """The loss of paper eq. (5) with the penalties, on one step's drawn inputs; no
+    randomness of its own (so it can run under ``torch.func.vmap``)."""
+    v = inputs.velocities
+    pi, f = policy.field_and_nominal(inputs.positions)
+    loss = config.velocity_weight * velocity_loss(pi, v, config.velocity_shape)
+    if config.nominal_weight and f is not None:
+        loss = loss + config.nominal_weight * velocity_loss(f, v, config.velocity_shape)
+    if inputs.windows is not None:
+        loss = loss + window_loss(policy.field, *inputs.windows)
+    if inputs.shape_states is not None:
+        loss = loss + config.shape_weight * _shape_penalty_at(policy, inputs.shape_states)
+    if inputs.warp_draws is not None:
+        loss = loss + config.warp_weight * _warp_penalty_at(_warp_of(policy), *inputs.warp_draws)
     return loss
+
+
+def _uniform_states(
+    dim: int, generator: torch.Generator, like: torch.Tensor, count: int = 256
+) -> torch.Tensor:
+    """``count`` states uniform in [-2, 2]^n (model coordinates), dtype and device of ``like``."""
+    return torch.rand(count, dim, generator=generator).to(like) * 4.0 - 2.0
 
 
 def shape_penalty(
@@ -496,8 +574,13 @@ def shape_penalty(
         generator: Source of the random states (the training's, so runs stay reproducible).
         count: Number of states.
     """
-    param = next(policy.parameters())
-    x = torch.rand(count, dim, generator=generator).to(param) * 4.0 - 2.0
+    return _shape_penalty_at(
+        policy, _uniform_states(dim, generator, next(policy.parameters()), count)
+    )
+
+
+def _shape_penalty_at(policy: Policy, x: torch.Tensor) -> torch.Tensor:
+    """:func:`shape_penalty` at given states x, shape (count, n)."""
     ratio = policy.lyapunov(x) / (x * x).sum(-1)
     return torch.log(ratio).var()
 
@@ -523,8 +606,21 @@ def warp_penalty(
             reproducible).
         count: Number of states.
     """
-    param = next(warp.parameters())
-    x = torch.rand(count, dim, generator=generator).to(param) * 4.0 - 2.0
-    probe = torch.randn(count, dim, generator=generator).to(param)
+    return _warp_penalty_at(warp, *_warp_draws(dim, generator, next(warp.parameters()), count))
+
+
+def _warp_draws(
+    dim: int, generator: torch.Generator, like: torch.Tensor, count: int = 256
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`warp_penalty`'s random inputs: states uniform in [-2, 2]^n and one Gaussian
+    probe each, both (count, n)."""
+    x = _uniform_states(dim, generator, like, count)
+    return x, torch.randn(count, dim, generator=generator).to(like)
+
+
+def _warp_penalty_at(
+    warp: EuclideanizingFlow, x: torch.Tensor, probe: torch.Tensor
+) -> torch.Tensor:
+    """:func:`warp_penalty` at given states and probes, each (count, n)."""
     _, caches = warp.forward_with_caches(x)
     return ((warp.jvp(caches, probe) - probe) ** 2).sum(-1).mean()
