@@ -444,33 +444,50 @@
   // --- Rollouts -----------------------------------------------------------------------------
 
   let rolloutToken = 0;
+  // Seconds of motion per rollout request: the page asks for the next piece while it plays
+  // one, so the point moves at once and the server never computes what a push throws away.
+  const CHUNK = 1.0;
+  // Pieces are requested ahead until this many seconds of motion are ready to play.
+  const AHEAD = 0.8;
+
+  async function fetchChunk(ro, token) {
+    const job = currentJob();
+    ro.pending = true;
+    let answer;
+    try {
+      answer = await api(`/api/jobs/${job.id}/rollout`, { start: ro.states[ro.states.length - 1], duration: CHUNK });
+    } catch (error) {
+      if (token === rolloutToken) { ro.status = "stopped"; say(error.message, true); }
+      return;
+    }
+    if (token !== rolloutToken) return;
+    const offset = ro.t[ro.t.length - 1];
+    for (let k = 1; k < answer.t.length; k++) {
+      ro.t.push(offset + answer.t[k]);
+      ro.states.push(answer.states[k]);
+    }
+    ro.integrator = answer.integrator;
+    ro.finalDistance = answer.final_distance;
+    ro.tolerance = answer.tolerance;
+    ro.arrived = answer.arrived;
+    // Done when it arrived, or after the stability check's horizon (10 demonstration lengths).
+    ro.complete = answer.arrived || ro.t[ro.t.length - 1] >= 10 * job.result.duration;
+    ro.pending = false;
+  }
 
   async function startRollout(start, trail = []) {
     const job = currentJob();
     if (!job || !job.result) return;
     const token = ++rolloutToken;
-    app.rollout = { status: "requesting", position: start, trail, start };
+    const piece = { points: [start], push: false };
+    const ro = { status: "requesting", position: start, trail, start, t: [0], states: [start], piece, index: 0 };
+    app.rollout = ro;
     draw();
-    let answer;
-    try {
-      answer = await api(`/api/jobs/${job.id}/rollout`, { start });
-    } catch (error) {
-      say(error.message, true);
-      return;
-    }
-    if (token !== rolloutToken) return;
-    const piece = { points: [answer.states[0]], push: false };
+    await fetchChunk(ro, token);
+    if (token !== rolloutToken || ro.status === "stopped") return;
     trail.push(piece);
-    Object.assign(app.rollout, {
-      status: "running",
-      answer,
-      piece,
-      clock: performance.now(),
-      index: 0,
-      arrived: answer.arrived,
-      finalDistance: answer.final_distance,
-      tolerance: answer.tolerance,
-    });
+    ro.status = "running";
+    ro.clock = performance.now();
     requestAnimationFrame((now) => animate(now, token));
   }
 
@@ -478,13 +495,19 @@
   function animate(now, token) {
     const ro = app.rollout;
     if (!ro || token !== rolloutToken || ro.status !== "running") return;
-    const { t, states } = ro.answer;
-    const tau = (now - ro.clock) / 1000;
+    const { t, states } = ro;
+    let tau = (now - ro.clock) / 1000;
+    if (!ro.complete && !ro.pending && t[t.length - 1] - tau < AHEAD) fetchChunk(ro, token);
+    if (!ro.complete && tau > t[t.length - 1]) {
+      // The next piece is late: wait for it where the point is, without skipping ahead.
+      ro.clock = now - 1000 * t[t.length - 1];
+      tau = t[t.length - 1];
+    }
     while (ro.index < t.length - 1 && t[ro.index + 1] <= tau) {
       ro.index += 1;
       ro.piece.points.push(states[ro.index]);
     }
-    if (ro.index >= t.length - 1) {
+    if (ro.complete && ro.index >= t.length - 1) {
       ro.position = states[states.length - 1];
       ro.status = ro.arrived ? "arrived" : "stopped";
       const seconds = t[t.length - 1].toFixed(2);
@@ -492,8 +515,8 @@
       const after = pushes ? ` after ${pushes === 1 ? "a push" : `${pushes} pushes`}` : "";
       say(ro.arrived
         ? `Reached the target${after}, ${seconds} s from the last start.`
-        : `Did not reach the target in ${seconds} s (${ro.answer.integrator}).`, !ro.arrived);
-    } else {
+        : `Did not reach the target in ${seconds} s (${ro.integrator}).`, !ro.arrived);
+    } else if (ro.index < t.length - 1) {
       const k = ro.index;
       const s = (tau - t[k]) / Math.max(1e-12, t[k + 1] - t[k]);
       ro.position = [0, 1].map((d) => states[k][d] + s * (states[k + 1][d] - states[k][d]));
