@@ -293,8 +293,9 @@ def rollout_from(
 ) -> dict:
     """A rollout of a job's policy: the guarded step for a stable policy, else plain Euler.
 
-    Each push displaces the state at its time; the rollout ends at ``duration`` or when the
-    state is within the stability check's tolerance of the target with no push left.
+    Each push displaces the state at its time; the rollout ends at ``duration`` (or after
+    ``max_steps`` steps), or when the state is within the stability check's tolerance of the
+    target with no push left.
     """
     policy = job.extra["policy"]
     result = job.extra["result"]
@@ -310,7 +311,10 @@ def rollout_from(
     value = None
     t, times, states, shortened = 0.0, [0.0], [x[0].tolist()], 0
     pending = list(pushes)
-    for _ in range(steps):
+    # Until the duration: the guard's shorter steps take more of them (at most max_steps).
+    for _ in range(max_steps):
+        if t >= duration:
+            break
         while pending and pending[0][0] <= t:
             x = x + torch.as_tensor(pending.pop(0)[1])
             value = None
