@@ -9,6 +9,7 @@ and plots (:mod:`snds.plotting`), with the CLI (:mod:`snds.cli`) on top.
 
 __version__ = "0.1.0"
 
+from snds.batched import fit_many  # noqa: E402
 from snds.errors import DataError, ModelFileError, SNDSError  # noqa: E402
 from snds.policy import PolicyConfig, StablePolicy, project  # noqa: E402
 from snds.train import TrainConfig, TrainingError, fit  # noqa: E402
@@ -23,5 +24,6 @@ __all__ = [
     "TrainingError",
     "__version__",
     "fit",
+    "fit_many",
     "project",
 ]

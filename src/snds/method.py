@@ -10,6 +10,7 @@ names them all is :mod:`snds.methods`.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -17,7 +18,7 @@ from snds.data.demonstrations import Demonstrations, Normalization, Split
 from snds.policy import Policy, PolicyConfig, StablePolicy
 
 if TYPE_CHECKING:
-    from snds.train import TrainConfig
+    from snds.train import TrainConfig, TrainResult
 
 
 @dataclass(frozen=True)
@@ -84,7 +85,11 @@ def train_network(
     from snds.train import fit
 
     result = fit(policy, demos, split, config, progress=progress)
-    record = {
+    return Fitted(policy=policy, seconds=result.seconds, record=_record(config, result))
+
+
+def _record(config: TrainConfig, result: TrainResult) -> dict:
+    return {
         "train": config.to_dict(),
         "train_result": {
             "seconds": result.seconds,
@@ -93,7 +98,6 @@ def train_network(
             "stopped": result.stopped,
         },
     }
-    return Fitted(policy=policy, seconds=result.seconds, record=record)
 
 
 @dataclass(frozen=True)
@@ -118,6 +122,41 @@ class NeuralMethod(Method):
         steps: int | None = None,
         progress: bool = False,
     ) -> Fitted:
+        policy, config = self._setup(demos, seed, steps)
+        return train_network(policy, demos, split, config, progress=progress)
+
+    def fit_many(
+        self,
+        demos: Sequence[Demonstrations],
+        splits: Sequence[Split],
+        *,
+        seeds: Sequence[int],
+        steps: int | None = None,
+        progress: bool = False,
+    ) -> list[Fitted]:
+        """Fits one policy per (demonstrations, split, seed) as one stacked model
+        (:func:`snds.batched.fit_many`): the policies :meth:`fit` gives one by one, up to
+        rounding. Each :attr:`Fitted.seconds` is its share, the stacked fit's wall time over
+        the number of fits; the record holds that number as ``batched``.
+        """
+        from snds.batched import fit_many
+
+        setups = [self._setup(d, seed, steps) for d, seed in zip(demos, seeds, strict=True)]
+        policies, configs = [p for p, _ in setups], [c for _, c in setups]
+        results = fit_many(policies, demos, splits, configs, progress=progress)
+        return [
+            Fitted(
+                policy=policy,
+                seconds=result.seconds / len(setups),
+                record=_record(config, result) | {"batched": len(setups)},
+            )
+            for policy, config, result in zip(policies, configs, results)
+        ]
+
+    def _setup(
+        self, demos: Demonstrations, seed: int, steps: int | None
+    ) -> tuple[StablePolicy, TrainConfig]:
+        """The untrained policy and the training settings of a fit."""
         from snds.train import TrainConfig
 
         config = TrainConfig(seed=seed) if steps is None else TrainConfig(seed=seed, steps=steps)
@@ -127,4 +166,4 @@ class NeuralMethod(Method):
             config=self.policy_config,
             seed=seed,
         )
-        return train_network(policy, demos, split, config, progress=progress)
+        return policy, config
