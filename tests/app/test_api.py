@@ -183,14 +183,14 @@ def test_model_zip_evaluates_exports_and_simulates_through_the_cli(
     names = {p.name for p in model.iterdir()}
     assert names == {"model.json", "model.safetensors", "metrics.json", "loss.json", "strokes.csv"}
     data = ["--data", str(model / "strokes.csv")]
-    assert (
-        main(["--quiet", "evaluate", str(model), *data, "--rollouts", "20", "--samples", "500"])
-        == 0
-    )
-    assert main(["--quiet", "export", str(model), "--format", "onnx", "--samples", "200"]) == 0
-    assert (model / "policy.onnx").is_file()
     sim = ["--robot", "iiwa", "--time-limit", "2", "--frames", "0", "--out", str(tmp_path / "sim")]
-    assert main(["--quiet", "simulate", str(model), *data, *sim]) == 0
+    for argv in (
+        ["evaluate", str(model), *data, "--rollouts", "20", "--samples", "500"],
+        ["export", str(model), "--format", "onnx", "--samples", "200"],
+        ["simulate", str(model), *data, *sim],
+    ):
+        assert main(["--quiet", *argv]) == 0, argv
+    assert (model / "policy.onnx").is_file()
     assert (tmp_path / "sim" / "sim.json").is_file()
     # And it trains on: the strokes are the file the job trained on (which snds train reads
     # to the same weights: test_the_run_folder_is_what_snds_train_writes).
