@@ -161,3 +161,34 @@ def test_only_the_seed_may_differ(motions):
     with pytest.raises(ConfigError, match="as many"):
         fit_many(policies, demos, splits, [TrainConfig()] * 3)
 
+
+def test_benchmark_fits_seeds_together_into_the_usual_run_folders(tmp_path, monkeypatch):
+    # GIVEN a sweep of two seeds of Line/snds with --batch-fits 2 (a short stability check)
+    import functools
+
+    from snds import benchmark, evaluate
+    from snds.io import load_model
+
+    monkeypatch.setattr(
+        evaluate,
+        "check_stability",
+        functools.partial(evaluate.check_stability, horizon_factor=0.2),
+    )
+    tasks = benchmark.make_tasks(["Line"], ["snds"], seeds=2, demos=2)
+    settings = benchmark.SweepSettings(steps=20, rollouts=5, samples=100, batch_fits=2)
+
+    def alone(task, settings):
+        pytest.fail("a seed was fitted alone")
+
+    monkeypatch.setattr(benchmark, "run_task", alone)
+    rows = benchmark.run_sweep(tasks, out=tmp_path, settings=settings, jobs=1, progress=False)
+    # THEN both runs are stored where a sweep of separate fits puts them, with their record
+    assert [(r["seed"], r["decrease_violations"]) for r in rows] == [(0, 0), (1, 0)]
+    for task in tasks:
+        _, description = load_model(tmp_path / task.model_dir)
+        assert description["batched"] == 2 and description["train"]["seed"] == task.seed
+    assert '"batch_fits": 2' in (tmp_path / benchmark.SETTINGS_FILE).read_text()
+    # AND a rerun finds them done; one of other settings is refused
+    assert benchmark.run_sweep(tasks, out=tmp_path, settings=settings, jobs=1, progress=False)
+    with pytest.raises(benchmark.SNDSError, match="another --out"):
+        benchmark.run_sweep(tasks, out=tmp_path, settings=replace(settings, batch_fits=1))

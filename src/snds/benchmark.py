@@ -28,6 +28,7 @@ import numpy as np
 from snds.data import LASA_NAMES, load_lasa, split_samples
 from snds.errors import DataError, SNDSError
 from snds.io import atomic_write
+from snds.method import Fitted
 from snds.methods import METHODS, get_method
 from snds.policy import Policy
 
@@ -97,11 +98,14 @@ class SweepSettings:
         steps: Optimiser steps instead of the default :class:`~snds.train.TrainConfig`'s.
         rollouts: Random starts of each run's stability check.
         samples: States of each run's decrease-condition check.
+        batch_fits: Fit up to this many seeds of one motion and method at once, as one
+            stacked model (SNDS and BC; see :func:`snds.batched.fit_many`); 1: one by one.
     """
 
     steps: int | None = None
     rollouts: int = 1000
     samples: int = 100_000
+    batch_fits: int = 1
 
     def __post_init__(self) -> None:
         if self.steps is not None and self.steps < 1:
@@ -110,6 +114,8 @@ class SweepSettings:
             raise SNDSError(
                 f"need rollouts >= 1 and samples >= 0, got {self.rollouts} and {self.samples}"
             )
+        if self.batch_fits < 1:
+            raise SNDSError(f"batch_fits must be >= 1, got {self.batch_fits}")
 
     @classmethod
     def quick(cls, *, steps: int | None = None) -> SweepSettings:
@@ -117,8 +123,12 @@ class SweepSettings:
         return cls(steps=steps, rollouts=100, samples=5000)
 
     def to_dict(self) -> dict:
-        """JSON-ready form."""
-        return asdict(self)
+        """JSON-ready form; ``batch_fits`` only when it is not 1, so that the folders of
+        sweeps from before it existed still resume."""
+        record = asdict(self)
+        if self.batch_fits == 1:
+            del record["batch_fits"]
+        return record
 
 
 def _names(spec: str) -> list[str]:
@@ -302,33 +312,75 @@ def run_task(task: Task, settings: SweepSettings) -> TaskOutput:
     Returns:
         The result row and the trained model's files.
     """
+    return run_batch([task], settings)[0]
+
+
+def run_batch(tasks: Sequence[Task], settings: SweepSettings) -> list[TaskOutput]:
+    """Runs tasks of one method as :func:`run_task` runs each, with their fits as one stacked
+    model (:meth:`snds.method.NeuralMethod.fit_many`; a single task is fitted alone).
+
+    The fits equal separate ones up to rounding, which training amplifies (see
+    :mod:`snds.batched`). Each row's ``train_seconds`` and ``train_cpu_seconds`` are its
+    share of the stacked fit (the total over the number of tasks); ``peak_memory_mb`` is the
+    batch's.
+
+    Arguments:
+        tasks: Runs of one method (seeds of one motion, typically).
+        settings: Training steps and the size of the stability check.
+
+    Returns:
+        Each task's result row and trained model's files, in order.
+    """
     import torch
 
     from snds.evaluate import evaluate
 
-    method = get_method(task.method)
+    method = get_method(tasks[0].method)
+    if any(task.method != method.name for task in tasks):
+        raise SNDSError(f"a batch runs one method, got {sorted({t.method for t in tasks})}")
     threads = torch.get_num_threads()
     # One thread per run: the networks are small, and runs side by side fill the cores.
     torch.set_num_threads(1)
     try:
         with _PeakMemory() as memory:
-            demos = load_lasa(task.motion)
-            if task.demos is not None:
-                demos = demos.first(task.demos)
-            split = split_samples(demos, test_fraction=0.2, seed=task.seed)
+            data = []
+            for task in tasks:
+                demos = load_lasa(task.motion)
+                if task.demos is not None:
+                    demos = demos.first(task.demos)
+                data.append((demos, split_samples(demos, test_fraction=0.2, seed=task.seed)))
             cpu = time.process_time()
-            fitted = method.fit(demos, split, seed=task.seed, steps=settings.steps)
-            cpu = time.process_time() - cpu
-            metrics = evaluate(
-                fitted.policy,
-                demos,
-                split,
-                seed=task.seed,
-                rollouts=settings.rollouts,
-                samples=settings.samples,
-            )
+            if len(tasks) == 1:
+                fits = [method.fit(*data[0], seed=tasks[0].seed, steps=settings.steps)]
+            else:
+                fits = method.fit_many(
+                    [demos for demos, _ in data],
+                    [split for _, split in data],
+                    seeds=[task.seed for task in tasks],
+                    steps=settings.steps,
+                )
+            cpu = (time.process_time() - cpu) / len(tasks)
+            metrics = [
+                evaluate(
+                    fitted.policy,
+                    demos,
+                    split,
+                    seed=task.seed,
+                    rollouts=settings.rollouts,
+                    samples=settings.samples,
+                )
+                for task, fitted, (demos, split) in zip(tasks, fits, data)
+            ]
     finally:
         torch.set_num_threads(threads)
+    return [
+        _output(task, fitted, task_metrics, cpu, memory.peak)
+        for task, fitted, task_metrics in zip(tasks, fits, metrics)
+    ]
+
+
+def _output(task: Task, fitted: Fitted, metrics: dict, cpu: float, peak: float) -> TaskOutput:
+    """A run's result row and model files from its fit and its evaluation."""
     stability = metrics["stability"]
     row = {
         "motion": task.motion,
@@ -339,7 +391,7 @@ def run_task(task: Task, settings: SweepSettings) -> TaskOutput:
         "train_cpu_seconds": cpu,
         **{k: float(metrics[k]) for k in ROW_FIELDS if k in metrics},
         **{k: stability[k] for k in ROW_FIELDS if k in stability},
-        "peak_memory_mb": memory.peak,
+        "peak_memory_mb": peak,
     }
     # JSON has no NaN (and NaN != NaN breaks resumed-row equality): "not defined" is None.
     row = {k: None if isinstance(v, float) and np.isnan(v) else v for k, v in row.items()}
@@ -349,6 +401,28 @@ def run_task(task: Task, settings: SweepSettings) -> TaskOutput:
         **fitted.record,
     }
     return TaskOutput(row=row, model=_model_files(fitted.policy, extra))
+
+
+def _units(tasks: Sequence[Task], batch_fits: int) -> list[tuple[Task, ...]]:
+    """The tasks grouped into the runs of one worker call: up to ``batch_fits`` tasks of one
+    motion, method and number of demonstrations where the method fits several at once
+    (SNDS, BC), every other task alone; in the order of ``tasks``."""
+    units: list[list[Task]] = []
+    filling: dict[tuple, list[Task]] = {}
+    for task in tasks:
+        if batch_fits == 1 or not hasattr(get_method(task.method), "fit_many"):
+            units.append([task])
+            continue
+        unit = filling.get((task.motion, task.method, task.demos))
+        if unit is None or len(unit) == batch_fits:
+            unit = filling[(task.motion, task.method, task.demos)] = []
+            units.append(unit)
+        unit.append(task)
+    return [tuple(unit) for unit in units]
+
+
+def _run_unit(unit: tuple[Task, ...], settings: SweepSettings) -> list[TaskOutput]:
+    return [run_task(unit[0], settings)] if len(unit) == 1 else run_batch(unit, settings)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -469,12 +543,12 @@ def summarise(rows: Sequence[dict]) -> str:
 
 
 def _run_local(
-    tasks: Sequence[Task], *, jobs: int, settings: SweepSettings
+    units: Sequence[tuple[Task, ...]], *, jobs: int, settings: SweepSettings
 ) -> Iterator[TaskOutput]:
     if jobs == 1:
         # One worker gains nothing from a process: run here and skip the start-up.
-        for task in tasks:
-            yield run_task(task, settings)
+        for unit in units:
+            yield from _run_unit(unit, settings)
         return
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -482,10 +556,10 @@ def _run_local(
     # spawn, not fork: forking a process whose torch already started threads can deadlock.
     context = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(max_workers=jobs, mp_context=context) as pool:
-        futures = [pool.submit(run_task, task, settings) for task in tasks]
+        futures = [pool.submit(_run_unit, unit, settings) for unit in units]
         try:
             for future in as_completed(futures):
-                yield future.result()
+                yield from future.result()
         except BaseException:
             for future in futures:
                 future.cancel()
@@ -493,7 +567,7 @@ def _run_local(
 
 
 def _run_dask(
-    tasks: Sequence[Task], *, scheduler: str, settings: SweepSettings
+    units: Sequence[tuple[Task, ...]], *, scheduler: str, settings: SweepSettings
 ) -> Iterator[TaskOutput]:
     try:
         from dask.distributed import Client, as_completed
@@ -502,11 +576,12 @@ def _run_dask(
     with Client(scheduler) as client:
         # pure=False: a rerun must train again, not return a cached result.
         futures = [
-            client.submit(run_task, task, settings, pure=False, key=task.key) for task in tasks
+            client.submit(_run_unit, unit, settings, pure=False, key="+".join(t.key for t in unit))
+            for unit in units
         ]
         try:
             for future in as_completed(futures):
-                yield future.result()
+                yield from future.result()
         except BaseException:
             client.cancel(futures)
             raise
@@ -563,10 +638,11 @@ def run_sweep(
     _check_settings(out, settings.to_dict())
     done = _read_results(out / RESULTS_FILE)
     pending = [task for task in tasks if task.key not in done]
+    units = _units(pending, settings.batch_fits)
     if scheduler is not None:
-        outputs = _run_dask(pending, scheduler=scheduler, settings=settings)
+        outputs = _run_dask(units, scheduler=scheduler, settings=settings)
     else:
-        outputs = _run_local(pending, jobs=jobs, settings=settings)
+        outputs = _run_local(units, jobs=jobs, settings=settings)
     show = progress and sys.stderr.isatty()
     start = time.perf_counter()
     with tqdm(

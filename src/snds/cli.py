@@ -262,6 +262,13 @@ def _build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--out", type=Path, default=Path("runs/benchmark"), help="results folder")
     bench.add_argument("--steps", type=int, default=None, help="optimiser steps per run")
     bench.add_argument(
+        "--batch-fits",
+        type=int,
+        default=1,
+        metavar="K",
+        help="fit up to K seeds of a motion at once as one stacked model (snds, bc)",
+    )
+    bench.add_argument(
         "--rollouts", type=int, default=None, help="random starts of each run's stability check"
     )
     bench.add_argument(
@@ -591,6 +598,7 @@ def _benchmark(args: argparse.Namespace) -> int:
         steps=args.steps,
         rollouts=base.rollouts if args.rollouts is None else args.rollouts,
         samples=base.samples if args.samples is None else args.samples,
+        batch_fits=args.batch_fits,
     )
     rows = benchmark.run_sweep(
         tasks,
