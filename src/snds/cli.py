@@ -118,6 +118,40 @@ def _check_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def _obstacle_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--obstacle",
+        action="append",
+        default=[],
+        metavar="SPEC",
+        help="an obstacle (repeatable): sphere:CX,CY[,CZ],R, ellipsoid:CX,CY[,CZ],A1,A2[,A3] "
+        "(semi-axes) or box:CX,CY[,CZ],H1,H2[,H3] (half-widths), then options margin=M, "
+        "influence=D, angle=DEG (2-D) or angles=A/B/C (3-D), velocity=V1/V2[/V3]; "
+        "docs/obstacles.md",
+    )
+    parser.add_argument(
+        "--workspace",
+        default=None,
+        metavar="SPEC",
+        help="box:CX,CY[,CZ],H1,H2[,H3][,margin=M]: the box the motion must stay in",
+    )
+    parser.add_argument(
+        "--scene", type=Path, default=None, help="obstacles and workspace from a .json/.yaml file"
+    )
+
+
+def _scene(args: argparse.Namespace):
+    """The obstacles of ``--scene``, ``--obstacle`` and ``--workspace``; None without any."""
+    from snds.obstacles import Scene, load_scene, parse_obstacle, parse_workspace
+
+    if not (args.obstacle or args.workspace or args.scene):
+        return None
+    base = load_scene(args.scene) if args.scene is not None else Scene()
+    obstacles = base.obstacles + tuple(parse_obstacle(spec) for spec in args.obstacle)
+    workspace = parse_workspace(args.workspace) if args.workspace else base.workspace
+    return Scene(obstacles=obstacles, workspace=workspace)
+
+
 def _build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="snds", description="Globally stable neural motion policies from demonstrations."
@@ -240,12 +274,14 @@ def _build_parser() -> argparse.ArgumentParser:
     _data_arguments(evaluate_, required=False)
     evaluate_.add_argument("--seed", type=int, default=0, help="seed of the stability check")
     _check_arguments(evaluate_)
+    _obstacle_arguments(evaluate_)
     evaluate_.set_defaults(run=_evaluate)
 
     plot = commands.add_parser("plot", help="plot a trained model")
     plot.add_argument("model", type=Path, help="model directory")
     _data_arguments(plot, required=False)
     plot.add_argument("--out", type=Path, default=None, help="folder of the PNGs")
+    _obstacle_arguments(plot)
     plot.set_defaults(run=_plot)
 
     bench = commands.add_parser(
@@ -331,6 +367,7 @@ def _build_parser() -> argparse.ArgumentParser:
     sim.add_argument(
         "--out", type=Path, default=None, help="results folder (default: MODEL/sim-ROBOT)"
     )
+    _obstacle_arguments(sim)
     sim.set_defaults(run=_simulate)
 
     export = commands.add_parser(
@@ -353,6 +390,7 @@ def _build_parser() -> argparse.ArgumentParser:
         "--samples", type=int, default=10_000, help="random states of the equality check"
     )
     export.add_argument("--seed", type=int, default=0, help="seed of those states")
+    _obstacle_arguments(export)
     export.set_defaults(run=_export)
 
     app = commands.add_parser(
@@ -545,10 +583,15 @@ def _model_and_data(args: argparse.Namespace) -> tuple[StablePolicy, dict, Demon
 
 
 def _evaluate(args: argparse.Namespace) -> int:
+    scene = _scene(args)
     _check_sizes(args)
     if _is_pose_model(args.model):
+        if scene is not None:
+            raise ConfigError("obstacles: snds evaluate takes position models (simulate: both)")
         return _evaluate_se3(args)
     policy, description, demos = _model_and_data(args)
+    if scene is not None:
+        return _evaluate_obstacles(args, policy, demos, scene)
     metrics = evaluate(
         policy,
         demos,
@@ -565,15 +608,39 @@ def _evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _evaluate_obstacles(args: argparse.Namespace, policy: Policy, demos: Demonstrations, scene):
+    """``snds evaluate`` with obstacles: the stability report under them, ``obstacles.json``."""
+    from snds.obstacles import check_obstacles
+
+    scene.check(demos.dim, demos.target)
+    report = check_obstacles(policy, demos, scene, rollouts=args.rollouts, seed=args.seed)
+    write_json(args.model / "obstacles.json", to_jsonable(report.to_dict()))
+    if not args.quiet:
+        r, d = report.random, report.demos
+        print(
+            f"{args.model / 'obstacles.json'}: {len(scene.bodies)} obstacles; random free "
+            f"starts: {r.reached} of {r.starts} reached, {r.stalled} stalled, {r.penetrated} "
+            f"penetrated, min clearance {r.min_clearance:.4g} (margin {r.margin:.4g}); demo "
+            f"starts: {d.reached} of {d.starts} reached, {d.penetrated} penetrated; "
+            f"{report.wall_seconds:.1f} s"
+        )
+    return 0
+
+
 def _plot(args: argparse.Namespace) -> int:
+    scene = _scene(args)
     if _is_pose_model(args.model):
+        if scene is not None:
+            raise ConfigError("obstacles: snds plot takes position models (simulate: both)")
         return _plot_se3(args)
     policy, _, demos = _model_and_data(args)
+    if scene is not None:
+        scene.check(demos.dim, demos.target)
     history = None
     loss_file = args.model / "loss.json"
     if loss_file.is_file():
         history = json.loads(loss_file.read_text()).get("history")
-    paths = _write_plots(policy, demos, args.out or args.model, history)
+    paths = _write_plots(policy, demos, args.out or args.model, history, scene=scene)
     if not args.quiet:
         for path in paths:
             print(path)
@@ -620,10 +687,13 @@ def _simulate(args: argparse.Namespace) -> int:
     from snds.sim import SimConfig, simulate
     from snds.sim.plots import plot_frames, plot_path, render_frames
 
+    scene = _scene(args)
     pose = _is_pose_model(args.model)
     policy, _, demos = _pose_model_and_data(args) if pose else _model_and_data(args)
     if not 0 <= args.start_demo < len(demos):
         raise SNDSError(f"--start-demo {args.start_demo}: there are {len(demos)} demonstrations")
+    if scene is not None:
+        scene.check(3 if pose else demos.dim, demos.target_position if pose else demos.target)
     config = SimConfig(
         robot=args.robot,
         scale=args.scale,
@@ -632,6 +702,7 @@ def _simulate(args: argparse.Namespace) -> int:
         tolerance=args.tolerance,
         angle_tolerance=args.angle_tolerance,
         push=args.push,
+        obstacles=scene,
     )
     first = demos[args.start_demo]
     # A pose model starts from a pose: position and quaternion, 7 numbers.
@@ -707,11 +778,20 @@ def _app(args: argparse.Namespace) -> int:
 
 
 def _write_plots(
-    policy: StablePolicy, demos: Demonstrations, out: Path, history: list[float] | None
+    policy: StablePolicy,
+    demos: Demonstrations,
+    out: Path,
+    history: list[float] | None,
+    scene=None,
 ) -> list[Path]:
     from snds.plotting import plot_all
 
-    return plot_all(policy.to(torch.float64).eval(), demos, out, history=history)
+    policy = policy.to(torch.float64).eval()
+    if scene is not None:
+        from snds.plotting import plot_obstacles
+
+        return [plot_obstacles(policy, demos, scene, out / "obstacles.png")]
+    return plot_all(policy, demos, out, history=history)
 
 
 def _summarise(out: Path, metrics: dict) -> None:

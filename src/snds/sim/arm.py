@@ -290,6 +290,51 @@ class Arm:
         for point in np.asarray(points, dtype=float):
             self.client.createMultiBody(baseVisualShapeIndex=shape, basePosition=point.tolist())
 
+    def add_obstacles(
+        self, shapes: list[np.ndarray], *, rgba: tuple = (0.45, 0.5, 0.55, 1.0)
+    ) -> list[int]:
+        """Adds fixed (massless) collision bodies: the convex hull of each vertex set (M, 3),
+        world metres; returns their body ids."""
+        from scipy.spatial import ConvexHull
+
+        bodies = []
+        for vertices in shapes:
+            hull = ConvexHull(vertices)
+            triangles = hull.simplices.copy()
+            # Wind every triangle outwards (its normal along the hull facet's), for rendering.
+            a, b, c = (vertices[triangles[:, i]] for i in range(3))
+            flip = (np.cross(b - a, c - a) * hull.equations[:, :3]).sum(-1) < 0
+            triangles[flip] = triangles[flip][:, ::-1]
+            collision = self.client.createCollisionShape(
+                self._pb.GEOM_MESH, vertices=vertices.tolist()
+            )
+            visual = self.client.createVisualShape(
+                self._pb.GEOM_MESH,
+                vertices=vertices.tolist(),
+                indices=triangles.ravel().tolist(),
+                rgbaColor=list(rgba),
+            )
+            bodies.append(
+                self.client.createMultiBody(
+                    baseMass=0.0,
+                    baseCollisionShapeIndex=collision,
+                    baseVisualShapeIndex=visual,
+                )
+            )
+        return bodies
+
+    def contact(self, bodies: list[int], *, within: float = 1.0) -> tuple[bool, float]:
+        """Whether the arm touches any of these bodies, and its smallest distance to them
+        (metres; ``within`` if none is nearer), from PyBullet's collision detection."""
+        c = self.client
+        c.performCollisionDetection()
+        touching = any(c.getContactPoints(bodyA=self.body, bodyB=b) for b in bodies)
+        nearest = within
+        for b in bodies:
+            for point in c.getClosestPoints(bodyA=self.body, bodyB=b, distance=within):
+                nearest = min(nearest, point[8])
+        return touching, float(nearest)
+
     def add_floor(self, *, rgba: tuple = (0.86, 0.86, 0.84, 1.0)) -> None:
         """Adds a visual-only floor under the robot, for pictures."""
         shape = self.client.createVisualShape(

@@ -31,6 +31,7 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
+from snds.obstacles import Scene, avoid_step, modulate_twist, step_fraction
 from snds.policy import Policy, float64_copy
 from snds.rollout import guarded_step, policy_guard
 from snds.se3 import PoseGuard, PosePolicy
@@ -74,6 +75,10 @@ class SimConfig:
             policy's run stops (with the distance within ``tolerance``); a position policy
             does not drive the orientation, and its run stops on the distance alone.
         push: An optional push.
+        obstacles: A :class:`~snds.obstacles.Scene` in the task's user units (static): the
+            policy's velocity is modulated around them and each step shortened so that the
+            commanded tool point stays out of their margins; they are collision bodies in the
+            PyBullet world (a 2-D task's shapes as their 3-D analogues centred on the plane).
         hold_gain: Gain (1/s) of the holds on what a position policy does not drive: the
             orientation, and for a 2-D task the distance off the work plane.
         gravity: Whether gravity acts on the arm.
@@ -87,6 +92,7 @@ class SimConfig:
     tolerance: float = 0.001
     angle_tolerance: float = 0.02
     push: Push | None = None
+    obstacles: Scene | None = None
     hold_gain: float = 5.0
     gravity: bool = True
 
@@ -101,6 +107,8 @@ class SimConfig:
             raise SimulationError(
                 f"the angle tolerance must be positive, got {self.angle_tolerance}"
             )
+        if self.obstacles is not None and self.obstacles.moving:
+            raise SimulationError("moving obstacles are not simulated (the bodies are static)")
 
     def to_dict(self) -> dict:
         """JSON-ready form."""
@@ -290,9 +298,17 @@ class PositionCommander:
         :func:`snds.rollout.guarded_step`), as for pose policies.
         """
         state = torch.as_tensor(self.placement.to_task(pose.position))[None]
+        scene = self.config.obstacles
         with torch.no_grad():
-            velocity = self.policy(state)
-            if self.guard is not None:
+            if scene is not None:
+                # Modulated around the obstacles, the step shortened to stay out of them (and
+                # to decrease V where no obstacle is in reach).
+                dt = 1.0 / self.config.control_rate
+                _, h, velocity = avoid_step(self.policy, scene, state, dt=dt, guard=self.guard)
+                velocity = velocity * (h / dt).unsqueeze(-1)
+            else:
+                velocity = self.policy(state)
+            if self.guard is not None and scene is None:
                 lyapunov, rate = self.guard
                 dt = 1.0 / self.config.control_rate
                 # The velocity is evaluated once: the guarded step only asks for it at state.
@@ -379,6 +395,15 @@ class PoseCommander:
                 twist = self.guard.safe_twist(x, 1.0 / self.config.control_rate)[0][0]
             else:
                 twist = self.guard.field(x)[0]
+            scene = self.config.obstacles
+            if scene is not None:
+                # The position part goes around the obstacles; the whole twist is shortened
+                # so that the position stays out of their margins.
+                place = x[:, :3]
+                target = torch.as_tensor(self.policy.config.target_position).to(place)
+                twist = modulate_twist(scene, place, twist[None], target)
+                dt = 1.0 / self.config.control_rate
+                twist = (twist * step_fraction(scene, place, twist[:, :3], dt).unsqueeze(-1))[0]
         return self.pose_placement.twist_to_world(twist.numpy())
 
     def arrived(self, distance: float, angle: float) -> bool:
@@ -436,6 +461,11 @@ class SimResult:
         recovery_time: Seconds from the push until the end effector is again as close to
             the target as it was just before the push (0 for a push towards the target);
             None without a push, or if it never is.
+        obstacle_clearance: Smallest distance of the tool point to an obstacle's physical
+            shape (or a workspace wall) over the run, metres (None without obstacles).
+        arm_obstacle_distance: Smallest distance of any link of the arm to an obstacle's
+            collision body (PyBullet), metres (None without obstacle bodies).
+        contact_steps: Control steps at which the arm touched an obstacle body.
     """
 
     config: SimConfig
@@ -458,6 +488,9 @@ class SimResult:
     push_time: float | None
     push_offset: np.ndarray | None
     recovery_time: float | None
+    obstacle_clearance: float | None = None
+    arm_obstacle_distance: float | None = None
+    contact_steps: int | None = None
 
     @property
     def drives_orientation(self) -> bool:
@@ -497,6 +530,9 @@ class SimResult:
             "push_time_s": self.push_time,
             "push_offset_m": None if self.push_offset is None else self.push_offset.tolist(),
             "recovery_time_s": self.recovery_time,
+            "obstacle_clearance_m": self.obstacle_clearance,
+            "arm_obstacle_distance_m": self.arm_obstacle_distance,
+            "contact_steps": self.contact_steps,
             **{k: np.asarray(v).tolist() for k, v in arrays.items()},
         }
 
@@ -528,6 +564,10 @@ def simulate(policy: Policy, start: np.ndarray, config: SimConfig) -> SimResult:
         commander = make_commander(policy, robot, arm.end_effector().orientation, config)
         placement, goal = commander.placement, commander.goal_orientation
         start_position, start_orientation = commander.start_pose(start)
+        bodies = []
+        if config.obstacles is not None:
+            bodies = arm.add_obstacles(world_shapes(config.obstacles, placement))
+        contacts, arm_distance = 0, np.inf
         start_error = arm.move_to(start_position, start_orientation)
         start_angle = _angle(arm.end_effector().orientation, start_orientation)
         # The motors track an integrated reference, not "measured + one step": a reference
@@ -559,6 +599,10 @@ def simulate(policy: Policy, start: np.ndarray, config: SimConfig) -> SimResult:
             reference = np.clip(reference + dt * qdot, arm.lower, arm.upper)
             arm.command(reference, qdot)
             arm.step(config.substeps)
+            if bodies:
+                touching, nearest = arm.contact(bodies)
+                contacts += int(touching)
+                arm_distance = min(arm_distance, nearest)
         positions_ = np.array(positions)
         orientations_ = np.array(orientations)
         angles = np.array([_angle(o, goal) for o in orientations_])
@@ -584,7 +628,45 @@ def simulate(policy: Policy, start: np.ndarray, config: SimConfig) -> SimResult:
             push_time=push_time,
             push_offset=push_offset,
             recovery_time=_recovery_time(positions_, placement.origin, np.array(times), push_time),
+            **_obstacle_record(config, placement, positions_, bodies, contacts, arm_distance),
         )
+
+
+def world_shapes(scene: Scene, placement: Placement, count: int = 400) -> list[np.ndarray]:
+    """World vertices (M, 3) of each obstacle of a scene (not the workspace), whose convex
+    hull is its collision body: a 2-D task's shapes as their 3-D analogues (see
+    :meth:`snds.obstacles.Obstacle.solid`) centred on the work plane."""
+    axes = placement.axes
+    n = axes.shape[1]
+    normal = np.cross(axes[:, 0], axes[:, 1]) if n == 2 else np.zeros(3)
+    shapes = []
+    for obstacle in scene.obstacles:
+        points = obstacle.solid().surface_points(count)
+        offset = (points[:, :n] - placement.target) @ axes.T
+        if n == 2:
+            offset = offset + points[:, 2:3] * normal
+        shapes.append(placement.origin + placement.scale * offset)
+    return shapes
+
+
+def _obstacle_record(
+    config: SimConfig,
+    placement: Placement,
+    positions: np.ndarray,
+    bodies: list[int],
+    contacts: int,
+    arm_distance: float,
+) -> dict:
+    """The run's clearances from its obstacles (the fields of :class:`SimResult`)."""
+    if config.obstacles is None:
+        return {}
+    states = torch.as_tensor(np.array([placement.to_task(p) for p in positions]))
+    clearance = float(config.obstacles.clearances(states).min()) * placement.scale
+    return {
+        "obstacle_clearance": clearance,
+        "arm_obstacle_distance": float(arm_distance) if bodies else None,
+        "contact_steps": contacts if bodies else None,
+    }
 
 
 def _angle(current: np.ndarray, wanted: np.ndarray) -> float:
