@@ -30,7 +30,6 @@ import datetime
 import json
 import os
 import platform
-import shutil
 import socket
 import subprocess
 import sys
@@ -42,23 +41,13 @@ from pathlib import Path
 import numpy as np
 from _readme import write_readme_section
 
+from snds.app.headless import available, launch
 from snds.app.strokes import csv_text, parse_strokes
 from snds.data import load_lasa
 from snds.io import write_json
 
 HERE = Path(__file__).resolve().parent
 FIELD = {"bounds": [-100.0, 100.0, -75.0, 75.0], "size": [72, 54]}
-CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
-CHROMIUM_ARGS = [
-    "--headless",
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-quic",
-    "--no-first-run",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-]
 # Records the gaps between animation frames on the page, to see whether it stays fluid.
 FRAME_GAPS = """() => {
   window.frameGaps = [];
@@ -153,7 +142,7 @@ def _train_in_browser(server: Server, strokes: dict) -> dict:
     from playwright.sync_api import sync_playwright
 
     with sync_playwright() as playwright:
-        browser = playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        browser = launch(playwright)
         page = browser.new_page(viewport={"width": 1240, "height": 800})
         page.goto(server.url)
         csv = csv_text(parse_strokes(strokes)).encode()
@@ -175,6 +164,7 @@ def _train_in_browser(server: Server, strokes: dict) -> dict:
             "sndsApp.jobs.snds.status.state === 'done'", timeout=1_800_000, polling=100
         )
         timings = page.evaluate("sndsApp.timings.snds")
+        layer_ms = page.evaluate("sndsApp.jobs.snds.layerMs")
         gaps = page.evaluate("window.frameGaps")
         job = page.evaluate("sndsApp.jobs.snds.id")
         status, _ = server.api(f"/api/jobs/{job}")
@@ -185,6 +175,7 @@ def _train_in_browser(server: Server, strokes: dict) -> dict:
         "click_to_field_seconds": (timings["drawn"] - timings["clicked"]) / 1e3,
         "status": status,
         "server_cpu_seconds": _cpu(server.process.pid) - before,
+        "draw_field_ms": layer_ms,
         "health_while_training": _summary(health),
         "frame_gap_ms_while_training": {
             "median": float(np.median(gaps)),
@@ -243,7 +234,7 @@ def main() -> None:
     strokes = _strokes()
     server = Server()
     try:
-        browser = Path(CHROMIUM).is_file() and not args.no_browser
+        browser = available() and not args.no_browser
         first = (
             _train_in_browser(server, strokes)
             if browser
@@ -311,8 +302,8 @@ def _table(r: dict) -> str:
             "",
             "While the first job trained, `/api/health` answered in "
             f"{_ms(r['health_while_training'])} ms and the page's animation frames came "
-            f"every {gaps['median']:.0f} ms "
-            f"(longest gap {gaps['max']:.0f} ms).",
+            f"every {gaps['median']:.0f} ms (longest gap {gaps['max']:.0f} ms); drawing the "
+            f"field (V's contours and the streamlines) took {r['draw_field_ms']:.0f} ms.",
         ]
     return "\n".join(rows)
 

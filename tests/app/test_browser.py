@@ -10,7 +10,6 @@ makes the README's pictures).
 from __future__ import annotations
 
 import os
-import shutil
 import socket
 import threading
 import time
@@ -25,25 +24,14 @@ sync_api = pytest.importorskip(
 )
 
 from snds.app import create_app  # noqa: E402
+from snds.app.headless import available, launch  # noqa: E402
 
-CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
-# Flags for a headless Chromium that reaches nothing but the page's own server.
-CHROMIUM_ARGS = [
-    "--headless",
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-quic",
-    "--no-first-run",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-]
 #: The page's query: tiny training settings (``SNDS_APP_QUERY=""`` takes snds train's own
 #: defaults, as for the README's pictures).
 QUERY = os.environ.get("SNDS_APP_QUERY", "steps=30&rollouts=10&samples=200")
 
 pytestmark = pytest.mark.skipif(
-    not Path(CHROMIUM).is_file(),
+    not available(),
     reason="no Chromium installed (apt-get install chromium): the page's browser test needs it",
 )
 
@@ -66,7 +54,7 @@ def url():
 @pytest.fixture(scope="module")
 def page(url):
     with sync_api.sync_playwright() as playwright:
-        browser = playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        browser = launch(playwright)
         page = browser.new_page(viewport={"width": 1240, "height": 800})
         page.goto(f"{url}/?{QUERY}")
         yield page

@@ -66,7 +66,7 @@ from snds.app.strokes import (
 from snds.app.worker import Job, Jobs
 from snds.errors import SNDSError
 from snds.evaluate import reproduce
-from snds.io import load_model
+from snds.io import load_model, to_jsonable
 from snds.policy import float64_copy
 from snds.rollout import guarded_step, policy_guard
 
@@ -93,19 +93,18 @@ STROKES_FILE = "strokes.csv"
 # --- Requests and responses --------------------------------------------------------------------
 
 
-def _clean(value: Any) -> Any:
-    """JSON-ready: NumPy to lists and floats, non-finite floats to null."""
+def _finite(value: Any) -> Any:
+    """JSON-ready data (:func:`snds.io.to_jsonable`) with non-finite floats as null."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
     if isinstance(value, dict):
-        return {str(k): _clean(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_clean(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return _clean(value.tolist())
-    if isinstance(value, np.generic):
-        return _clean(value.item())
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    return value
+        return {k: _finite(v) for k, v in value.items()}
+    return [_finite(v) for v in value] if isinstance(value, list) else value
+
+
+def _clean(value: Any) -> Any:
+    """JSON-ready: NumPy to lists and floats, non-finite floats to null (JSON has no NaN)."""
+    return _finite(to_jsonable(value))
 
 
 def _json(data: Any, status: int = 200) -> Response:

@@ -226,7 +226,9 @@
       return;
     }
     if (app.jobs[job.method] !== job) return;
+    const before = performance.now();
     job.layer = renderLayer(job);
+    job.layerMs = performance.now() - before;
     app.drawn[job.method] = true;
     app.timings[job.method].drawn = performance.now();
     if (job.method === "snds") setMode("run");
@@ -264,39 +266,54 @@
     layer.height = Math.round(h * ratio);
     const g = layer.getContext("2d");
     const sample = sampler(job.field);
-    if (job.field.V) drawContours(g, job.field, sample, layer.width, layer.height, ratio);
+    if (job.field.V) drawContours(g, job.field, layer.width, layer.height);
     g.scale(ratio, ratio);
     drawStreamlines(g, job.field, sample, job.method === "bc" ? "rgba(150, 40, 40, 0.5)" : "rgba(30, 50, 80, 0.5)");
     return layer;
   }
 
-  function drawContours(g, field, sample, width, height, ratio) {
-    const logV = field.V.map((row) => row.map((v) => Math.log(Math.max(v, 1e-300))));
-    let lo = Infinity;
+  // Filled bands of log V with a darker pixel where the band changes: contour lines. The grid
+  // spans the view, so each pixel maps straight onto it (rows of the grid go up, the canvas's
+  // down); plain loops over typed arrays keep a full-size board to some tens of milliseconds.
+  function drawContours(g, field, width, height) {
+    const nx = field.x.length;
+    const ny = field.y.length;
+    const logV = new Float64Array(nx * ny);
+    field.V.forEach((row, j) => row.forEach((v, i) => { logV[j * nx + i] = Math.log(Math.max(v, 1e-300)); }));
     let hi = -Infinity;
-    for (const row of logV) for (const v of row) { lo = Math.min(lo, v); hi = Math.max(hi, v); }
+    let lo = Infinity;
+    for (const v of logV) { lo = Math.min(lo, v); hi = Math.max(hi, v); }
     lo = Math.max(lo, hi - 14); // 14 e-folds of V are enough to see its shape near the target
     const bands = 16;
-    const image = g.createImageData(width, height);
+    const scale = bands / Math.max(hi - lo, 1e-12);
     const band = new Int16Array(width * height);
     for (let py = 0; py < height; py++) {
+      const fy = (1 - py / (height - 1)) * (ny - 1);
+      const j = Math.min(ny - 2, Math.floor(fy));
+      const b = fy - j;
       for (let px = 0; px < width; px++) {
-        const [x, y] = toWorld(px / ratio, py / ratio);
-        const value = sample(logV, x, y);
-        band[py * width + px] = value == null ? -1 : Math.max(0, Math.min(bands - 1, Math.floor(((value - lo) / (hi - lo)) * bands)));
+        const fx = (px / (width - 1)) * (nx - 1);
+        const i = Math.min(nx - 2, Math.floor(fx));
+        const a = fx - i;
+        const k = j * nx + i;
+        const top = logV[k] + a * (logV[k + 1] - logV[k]);
+        const bottom = logV[k + nx] + a * (logV[k + nx + 1] - logV[k + nx]);
+        const value = top + b * (bottom - top);
+        band[py * width + px] = Math.max(0, Math.min(bands - 1, Math.floor((value - lo) * scale)));
       }
     }
+    const image = g.createImageData(width, height);
+    const data = image.data;
     for (let p = 0; p < band.length; p++) {
       const k = band[p];
-      if (k < 0) continue;
       const s = k / (bands - 1);
-      let r = 246 - 70 * s;
-      let gg = 250 - 45 * s;
-      let b = 255 - 20 * s;
       const right = p % width < width - 1 ? band[p + 1] : k;
       const down = p + width < band.length ? band[p + width] : k;
-      if (right !== k || down !== k) { r -= 60; gg -= 50; b -= 30; }
-      image.data.set([r, gg, b, 255], 4 * p);
+      const edge = right !== k || down !== k;
+      data[4 * p] = 246 - 70 * s - (edge ? 60 : 0);
+      data[4 * p + 1] = 250 - 45 * s - (edge ? 50 : 0);
+      data[4 * p + 2] = 255 - 20 * s - (edge ? 30 : 0);
+      data[4 * p + 3] = 255;
     }
     g.putImageData(image, 0, 0);
   }
