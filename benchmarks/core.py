@@ -1,8 +1,9 @@
 """Core benchmark: the default SNDS configuration on the paper's 8 LASA motions.
 
 Trains every (motion, seed) with all 7 demonstrations and a random 0.8 / 0.2 split of the
-samples, evaluates on the test samples, and checks stability (1,000 rollouts from a box 3x
-the extent, 100,000 decrease-condition samples in a box 10x the extent). Each run is one
+samples, evaluates on the test samples, and checks stability with the library's default
+check (random starts from a box 3x the extent, decrease-condition samples in a box 10x the
+extent). Each run is one
 process with one torch thread; ``--jobs`` runs run side by side (default: all cores).
 
     python benchmarks/core.py                       # 8 motions x 3 seeds, table into README
@@ -21,6 +22,7 @@ import datetime
 import json
 import os
 import platform
+import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
@@ -61,20 +63,21 @@ def run_one(motion: str, seed: int, overrides: dict[str, object], quick: bool) -
     policy = StablePolicy(
         dim=demos.dim, normalization=Normalization.fit(demos), config=policy_config, seed=seed
     )
+    cpu = time.process_time()
     result = fit(policy, demos, split, train_config, progress=False)
-    metrics = evaluate(
-        policy,
-        demos,
-        split,
-        seed=seed,
-        rollouts=200 if quick else 1000,
-        samples=10_000 if quick else 100_000,
-    )
+    train_cpu = time.process_time() - cpu
+    wall, cpu = time.perf_counter(), time.process_time()
+    sizes = {"rollouts": 200, "samples": 10_000} if quick else {}
+    metrics = evaluate(policy, demos, split, seed=seed, **sizes)
+    check_seconds, check_cpu = time.perf_counter() - wall, time.process_time() - cpu
     stability = metrics.pop("stability")
     return {
         "motion": motion,
         "seed": seed,
         "train_seconds": round(result.seconds, 2),
+        "train_cpu_seconds": round(train_cpu, 2),
+        "check_seconds": round(check_seconds, 2),
+        "check_cpu_seconds": round(check_cpu, 2),
         "steps": result.steps,
         "restarts": result.restarts,
         **{k: v for k, v in metrics.items() if isinstance(v, float)},
@@ -91,9 +94,9 @@ def summarise(rows: list[dict], motions: list[str]) -> str:
     import numpy as np
 
     lines = [
-        "| motion | train s | velocity MSE (paper scale, test) | paper SNDS MSE | "
-        "DTW (paper scale) | converged | decrease violations |",
-        "|---|---|---|---|---|---|---|",
+        "| motion | train s (CPU s) | check s | velocity MSE (paper scale, test) "
+        "| paper SNDS MSE | DTW (paper scale) | converged | decrease violations |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for motion in motions:
         mine = [r for r in rows if r["motion"] == motion]
@@ -105,7 +108,8 @@ def summarise(rows: list[dict], motions: list[str]) -> str:
             return f"{values.mean():{fmt}} ± {values.std():{fmt}}"
 
         lines.append(
-            f"| {motion} | {stat('train_seconds', '.1f')} | {stat('velocity_mse_paper', '.4f')} "
+            f"| {motion} | {stat('train_seconds', '.1f')} ({stat('train_cpu_seconds', '.1f')}) "
+            f"| {stat('check_seconds', '.1f')} | {stat('velocity_mse_paper', '.4f')} "
             f"| {PAPER_MSE.get(motion, float('nan')):.4f} | {stat('dtw_paper', '.3f')} "
             f"| {min(r['converged_fraction'] for r in mine):.3f} (min) "
             f"| {sum(r['decrease_violations'] for r in mine)} |"

@@ -159,3 +159,28 @@ def test_settle_level_keeps_its_sublevel_set_inside_the_ball():
     floor = _Anisotropic()
     floor.quadratic = 1.0
     assert settle_level(floor, radius, dim=2) == radius**2
+
+
+def test_adaptive_rollouts_arrive_when_the_exact_flow_does():
+    # pi = -x from uniform starts: |x(t)| = |x0| e^-t enters the tolerance ball at
+    # t* = log(|x0| / tol). The check's steps grow far beyond the data's 0.05 s here.
+    from conftest import linear_policy
+
+    demos = _line_demo(0.05)
+    report = check_stability(linear_policy(1.0), demos, rollouts=41, samples=0, seed=0)
+    starts = np.random.default_rng(0).uniform(-3.0, 3.0, size=(41, 2))
+    exact = np.median(np.log(np.linalg.norm(starts, axis=1) / report.tolerance))
+    assert report.converged_fraction == 1.0
+    assert abs(report.median_time_to_converge - exact) < 0.03 * exact
+
+
+def test_a_diverging_field_without_v_ends_at_the_horizon():
+    # GIVEN a field that blows up to inf and NaN: the adaptive steps must still end
+    class Away(torch.nn.Module):
+        stable = False
+
+        def forward(self, x):
+            return 50.0 * x * x.norm(dim=-1, keepdim=True)
+
+    report = check_stability(Away(), _line_demo(0.05), rollouts=20, samples=0, seed=0)
+    assert report.converged_fraction == 0.0

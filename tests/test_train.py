@@ -232,3 +232,29 @@ def test_warp_penalty_is_the_jacobians_distance_from_the_identity(spiral):
     penalty.backward()
     # (a layer's bias only translates, so it does not enter J)
     assert all(layer.weight.grad.abs().sum() > 0 for layer in warp.layers)
+
+
+def test_penalties_come_every_kth_step_with_k_times_their_weight(spiral):
+    from snds.losses import make_samples
+
+    config = dataclasses.replace(SMALL, warp_layers=3)
+    policy = make_policy(spiral, config, seed=5)
+    with torch.no_grad():
+        for p in policy.lyapunov.warp.parameters():
+            p.add_(torch.randn_like(p))
+    samples = make_samples(spiral, policy.normalization, no_split(spiral), window=0).to(
+        torch.float64
+    )
+
+    def loss(step: int, **settings) -> float:
+        weights = {"warp_weight": 0.5, "shape_weight": 0.2} | settings
+        train = TrainConfig(position_noise=0.0, dtype="float64", **weights)
+        generator = torch.Generator().manual_seed(3)
+        return float(train_module._loss(policy, samples, train, generator, step).detach())
+
+    bare = loss(0, warp_weight=0.0, shape_weight=0.0)
+    once = loss(0, penalty_every=1)
+    # THEN at a multiple of k the penalties enter k times, and between them not at all
+    assert once > bare
+    assert loss(8, penalty_every=4) - bare == pytest.approx(4 * (once - bare), rel=1e-9)
+    assert loss(9, penalty_every=4) == bare

@@ -28,6 +28,7 @@ import numpy as np
 from snds.data import LASA_NAMES, load_lasa, split_samples
 from snds.errors import DataError, SNDSError
 from snds.io import atomic_write
+from snds.stability import ROLLOUTS, SAMPLES
 from snds.method import Fitted
 from snds.methods import METHODS, get_method
 from snds.policy import Policy
@@ -103,8 +104,8 @@ class SweepSettings:
     """
 
     steps: int | None = None
-    rollouts: int = 1000
-    samples: int = 100_000
+    rollouts: int = ROLLOUTS
+    samples: int = SAMPLES
     batch_fits: int = 1
 
     def __post_init__(self) -> None:

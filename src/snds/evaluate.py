@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from snds.data.demonstrations import Demonstrations, Split
+from snds.data.demonstrations import Demonstration, Demonstrations, Split
 from snds.metrics import dtw, final_distance, frechet, swept_error_area, velocity_mse
 from snds.policy import Policy, float64_copy
-from snds.stability import check_stability
+from snds.stability import ROLLOUTS, SAMPLES, check_stability
 
 
 def evaluation_demos(split: Split) -> list[int]:
@@ -17,8 +17,28 @@ def evaluation_demos(split: Split) -> list[int]:
     return held_out or list(range(len(split.train)))
 
 
+#: Longest reproduction compared with a demonstration: a longer demonstration is resampled to
+#: this many samples, uniform in time, for the rollout and the path metrics (DTW and the
+#: discrete Frechet distance cost O(T^2)). LASA (1,000) and the files of ../shared/data stay
+#: as they are.
+MAX_PATH_SAMPLES = 5000
+
+
+def path_reference(demo: Demonstration, max_samples: int = MAX_PATH_SAMPLES) -> np.ndarray:
+    """A demonstration's positions as the reproduction metrics see them, shape (T, n): the
+    samples themselves, or ``max_samples`` of them at uniform times (linear interpolation)
+    when the demonstration is longer."""
+    if len(demo.times) <= max_samples:
+        return demo.positions
+    times = np.linspace(demo.times[0], demo.times[-1], max_samples)
+    return np.stack(
+        [np.interp(times, demo.times, demo.positions[:, k]) for k in range(demo.dim)], axis=-1
+    )
+
+
 def reproduce(policy: Policy, demos: Demonstrations, indices: list[int]) -> list[np.ndarray]:
-    """Euler rollouts from the starts of demonstrations, each with its own mean step and length.
+    """Euler rollouts from the starts of demonstrations, each as long as its
+    :func:`path_reference` with its mean step.
 
     All starts are integrated as one batch (each row with its own step, and frozen once it has
     taken its demonstration's number of steps), so the cost is that of the longest one.
@@ -28,7 +48,7 @@ def reproduce(policy: Policy, demos: Demonstrations, indices: list[int]) -> list
     """
     if not indices:
         return []
-    steps = [len(demos[i].times) - 1 for i in indices]
+    steps = [len(path_reference(demos[i])) - 1 for i in indices]
     dt = torch.tensor([demos[i].duration / k for i, k in zip(indices, steps)], dtype=torch.float64)
     x = torch.tensor(np.stack([demos[i].positions[0] for i in indices]), dtype=torch.float64)
     remaining = torch.tensor(steps)
@@ -67,7 +87,7 @@ def accuracy(policy: Policy, demos: Demonstrations, split: Split) -> dict[str, f
     speed, extent = demos.max_speed(), demos.extent()
     indices = evaluation_demos(split)
     paths = reproduce(policy, demos, indices)
-    references = [demos[i].positions for i in indices]
+    references = [path_reference(demos[i]) for i in indices]
     dtws = [dtw(p, r) for p, r in zip(paths, references)]
     frechets = [frechet(p, r) for p, r in zip(paths, references)]
     # The swept error area is defined for planar motions only.
@@ -99,8 +119,8 @@ def evaluate(
     split: Split,
     *,
     seed: int = 0,
-    rollouts: int = 1000,
-    samples: int = 100_000,
+    rollouts: int = ROLLOUTS,
+    samples: int = SAMPLES,
     grid: bool = False,
 ) -> dict:
     """Accuracy and the stability report, as one JSON-ready record.

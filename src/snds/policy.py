@@ -97,16 +97,8 @@ class PolicyConfig:
             :data:`DEFAULT_WARP_LAYERS` for n >= 2 and 0 in 1-D, where a convex V fits every
             motion that reaches the target, and for ``stable=False``; a policy stores the
             number it took. A convex V cannot follow a demonstration that winds back and
-            forth: on Messy Snake the demonstrated velocities, projected with a convex model's
-            V, already miss by 0.047-0.053 of their mean square, and its held-out error is
-            0.074-0.115 (5 seeds) against the 0.05 bar; with 6 layers,
-            ``TrainConfig.warp_weight`` 0.001 and ``position_noise`` 0.0015 (the defaults) all
-            five seeds meet it, 0.036-0.050, with every start converged. Alone the warp leaves
-            the field stiff (largest safe Euler step 5e-7 s against 3e-3 s; 16% of random
-            starts arrive in time), which the warp penalty prevents (3e-5 s). The warp costs
-            2.5-3.3x the training time and some velocity error on clean data (median 1.23x on
-            LASA), and brings the rollouts' DTW down 2-3x (benchmarks/messy_snake.py,
-            benchmarks/reliability.py).
+            forth; the warp bends V's sublevel sets to follow it (the measured reasons for the
+            default are in docs/design.md).
         warp_features: Random Fourier features per coupling layer.
         warp_scale: Standard deviation of their frequencies, per unit of model coordinates.
         rectifier: r in the projection ("relu" as in the paper, or "softplus").
@@ -272,12 +264,18 @@ class Policy(nn.Module, ABC):
         return self.field(self.to_model(x)) * (self.length / self.time)
 
     @torch.no_grad()
-    def predict(self, x: np.ndarray) -> np.ndarray:
-        """NumPy convenience: velocities at positions (*, n), both in user units."""
-        param = next(self.parameters())
-        # A copy: demonstrations' arrays are read-only, which torch.as_tensor warns about.
-        x = torch.tensor(np.asarray(x), dtype=param.dtype, device=param.device)
-        return self(x).cpu().numpy()
+    def predict(self, x: np.ndarray, *, chunk: int = 65_536) -> np.ndarray:
+        """NumPy convenience: velocities at positions (*, n), both in user units, evaluated
+        ``chunk`` states at a time (bounds the memory of the networks' activations)."""
+        dtype, device = self.center.dtype, self.center.device
+        array = np.asarray(x)
+        flat = array.reshape(-1, array.shape[-1])
+        out = np.empty(flat.shape, dtype=torch.empty(0, dtype=dtype).numpy().dtype)
+        for begin in range(0, len(flat), chunk):
+            # A copy: demonstrations' arrays are read-only, which torch.as_tensor warns about.
+            rows = torch.tensor(flat[begin : begin + chunk], dtype=dtype, device=device)
+            out[begin : begin + chunk] = self(rows).cpu().numpy()
+        return out.reshape(array.shape)
 
 
 class StablePolicy(Policy):

@@ -53,7 +53,13 @@ from snds.errors import DataError
 from snds.metrics import dtw
 from snds.policy import PolicyConfig, StablePolicy, float64_copy
 from snds.rollout import guarded_step, policy_guard
-from snds.stability import decrease_violations, largest_safe_step, settle_level
+from snds.stability import (
+    ROLLOUTS,
+    SAMPLES,
+    decrease_violations,
+    largest_safe_step,
+    settle_level,
+)
 
 # --- SO(3) maths -------------------------------------------------------------------------------
 
@@ -603,11 +609,11 @@ def check_pose_stability(
     policy: PosePolicy,
     demos: PoseDemonstrations,
     *,
-    rollouts: int = 1000,
+    rollouts: int = ROLLOUTS,
     box_factor: float = 3.0,
     horizon_factor: float = 10.0,
     tolerance_factor: float = 0.01,
-    samples: int = 100_000,
+    samples: int = SAMPLES,
     sample_box_factor: float = 10.0,
     seed: int = 0,
     chunk: int = 20_000,
@@ -750,8 +756,8 @@ def evaluate_pose(
     split: Split,
     *,
     seed: int = 0,
-    rollouts: int = 1000,
-    samples: int = 100_000,
+    rollouts: int = ROLLOUTS,
+    samples: int = SAMPLES,
 ) -> dict[str, Any]:
     """Accuracy (:func:`pose_accuracy`, from the held-out demonstrations' starts, or all under a
     sample split) and the SE(3) stability report, as one JSON-ready record."""

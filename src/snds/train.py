@@ -48,33 +48,22 @@ class TrainConfig:
         velocity_weight: gamma_0; the window terms have gamma_i = 2^-i.
         nominal_weight: beta, the weight of a second velocity term on the nominal field f
             itself. Where the projection is active (ReLU rectifier), pi does not depend on
-            f's component along grad V, so the velocity term gives that component no
-            gradient: an f that points uphill where the data go downhill is stuck there until
-            V moves, and a fit can stall on a plateau (LASA Leaf_2, seed 0: loss 0.020 from
-            step 600 to the end, held-out error 0.048 against 0.010-0.012 for the other seeds;
-            with beta = 0.01, 0.0086 and the other seeds 0.0093-0.0106). The term keeps f
-            near the data everywhere; the guarantee is pi's and does not depend on it (0: off,
-            the paper's loss).
+            f's component along grad V, so the velocity term alone gives that component no
+            gradient and a fit can stall; this term keeps f near the data everywhere. The
+            guarantee is pi's and does not depend on it (0: off, the paper's loss).
         position_noise: Standard deviation of Gaussian noise added to the training states at
             every step (model coordinates, where the data span about [-1, 1]); the
             velocities stay as demonstrated. It smooths the fit where demonstrations run close
-            together at different speeds (Messy Snake, seed 2, with a warped V: held-out error
-            0.057 -> 0.043 at 0.0015) at some cost on sharp motions (benchmarks/messy_snake.py;
-            0: off). Not for SE(3) pose policies (``snds train --se3`` uses 0): with it, Messy
-            Snake lifted to SE(3) converged from 0 of 1,000 random poses, against all of them
-            without.
+            together at different speeds (0: off; SE(3) pose policies train without it).
         shape_weight: Weight of the penalty :math:`\operatorname{Var}_x \log(V(x) / |x|^2)`
-            over 256 random states per step, uniform in :math:`[-2, 2]^n` (model
-            coordinates): it keeps V's sublevel sets round where the data do not ask
-            otherwise (0: off, the default). An ill-conditioned V makes the projected field
-            stiff: on Messy Snake lifted to SE(3) (one demonstration, 6-D) V's Hessian
-            eigenvalues span 0.1-1000 and the largest safe Euler step is 20 us against the
-            data's 8.9 ms. The projection is unchanged by scaling V, and so is the penalty.
+            over 256 random states, uniform in :math:`[-2, 2]^n` (model coordinates): it
+            keeps V's sublevel sets round where the data do not ask otherwise, against stiff
+            fields (0: off). The projection is unchanged by scaling V, and so is the penalty.
         warp_weight: Weight of :func:`warp_penalty`, which keeps the Jacobian of a warped V's
-            diffeomorphism near the identity off the data (stable policies with a warp only;
-            0: off). Without it the warp that fits Messy Snake makes the field stiff: largest
-            safe Euler step 5e-7 s and 16% of random starts arriving in time, against 3e-5 s
-            and all of them at 0.001 (benchmarks/messy_snake.py).
+            diffeomorphism near the identity off the data, against stiff fields (stable
+            policies with a warp only; 0: off).
+        penalty_every: Evaluate the shape and warp penalties at every k-th step only, with k
+            times their weight (1: every step).
         patience: Stop when the smoothed loss has not improved by `min_improvement` (relative)
             for this many steps (0: never stop early).
         min_improvement: Relative improvement that resets the patience counter.
@@ -84,9 +73,9 @@ class TrainConfig:
         device: A torch device ("cpu", "cuda", ...).
     """
 
-    steps: int = 3000
+    steps: int = 1500
     max_seconds: float | None = None
-    lr: float = 1e-2
+    lr: float = 2e-2
     warmup: float = 0.02
     final_lr_fraction: float = 0.01
     batch_size: int = 512
@@ -99,6 +88,7 @@ class TrainConfig:
     position_noise: float = 0.0015
     shape_weight: float = 0.0
     warp_weight: float = 0.001
+    penalty_every: int = 4
     patience: int = 0
     min_improvement: float = 1e-3
     max_restarts: int = 5
@@ -116,6 +106,8 @@ class TrainConfig:
             )
         if self.dtype not in DTYPES:
             raise ConfigError(f"unknown dtype {self.dtype!r}; choose from {list(DTYPES)}")
+        if self.penalty_every < 1:
+            raise ConfigError(f"penalty_every must be >= 1, got {self.penalty_every}")
         if self.window < 0 or self.batch_size < 0 or self.window_batch_size < 0:
             raise ConfigError(
                 f"window and batch sizes must be >= 0, got window {self.window}, batch_size "
@@ -247,7 +239,7 @@ def fit(
         if checkpoint is not None and step > 0 and step % checkpoint_every == 0:
             result.seconds = time.perf_counter() - start
             save_checkpoint(Path(checkpoint), state, identity, policy, optimizer, generator)
-        loss = _loss(policy, samples, config, generator)
+        loss = _loss(policy, samples, config, generator, step)
         value = float(loss.detach())
         diverged = _diverged(value, state)
         if not diverged:
@@ -495,9 +487,13 @@ class _StepInputs:
 
 
 def _loss(
-    policy: StablePolicy, samples, config: TrainConfig, generator: torch.Generator
+    policy: StablePolicy,
+    samples: Samples,
+    config: TrainConfig,
+    generator: torch.Generator,
+    step: int = 0,
 ) -> torch.Tensor:
-    return _step_loss(policy, config, _draw_step(policy, samples, config, generator))
+    return _step_loss(policy, config, _draw_step(policy, samples, config, generator, step))
 
 
 def _warp_of(policy: Policy) -> EuclideanizingFlow | None:
@@ -506,7 +502,11 @@ def _warp_of(policy: Policy) -> EuclideanizingFlow | None:
 
 
 def _draw_step(
-    policy: StablePolicy, samples: Samples, config: TrainConfig, generator: torch.Generator
+    policy: StablePolicy,
+    samples: Samples,
+    config: TrainConfig,
+    generator: torch.Generator,
+    step: int = 0,
 ) -> _StepInputs:
     """Draws one step's random inputs from the fit's generator: the one place that does, in
     a fixed order (batch, noise, windows, shape states, warp draws), so a batched fit
@@ -531,6 +531,8 @@ def _draw_step(
             starts, targets, steps = starts[index], targets[index], steps[index]
         inputs = replace(inputs, windows=(starts, targets, steps))
     param = next(policy.parameters())
+    if step % config.penalty_every:
+        return inputs
     if config.shape_weight and policy.stable:
         inputs = replace(inputs, shape_states=_uniform_states(x.shape[-1], generator, param))
     if config.warp_weight and _warp_of(policy) is not None and policy.stable:
@@ -548,10 +550,15 @@ def _step_loss(policy: StablePolicy, config: TrainConfig, inputs: _StepInputs) -
         loss = loss + config.nominal_weight * velocity_loss(f, v, config.velocity_shape)
     if inputs.windows is not None:
         loss = loss + window_loss(policy.field, *inputs.windows)
+    # The penalties come at every k-th step only, with k times their weight: the same expected
+    # gradient at a fraction of the cost (each is a pass over V or its warp at random states).
+    every = config.penalty_every
     if inputs.shape_states is not None:
-        loss = loss + config.shape_weight * _shape_penalty_at(policy, inputs.shape_states)
+        shape = _shape_penalty_at(policy, inputs.shape_states)
+        loss = loss + every * config.shape_weight * shape
     if inputs.warp_draws is not None:
-        loss = loss + config.warp_weight * _warp_penalty_at(_warp_of(policy), *inputs.warp_draws)
+        warp = _warp_penalty_at(_warp_of(policy), *inputs.warp_draws)
+        loss = loss + every * config.warp_weight * warp
     return loss
 
 
