@@ -78,8 +78,8 @@ def history_error(a, b) -> float:
         # Every term on: noise, nominal term, windows, shape and warp penalties.
         (SMALL, WARPED),
         # Full batches of three sizes: three groups of one.
-        (replace(SMALL, warp_layers=0), TrainConfig(steps=30, batch_size=0)),
-        (replace(SMALL, stable=False), TrainConfig(steps=30, batch_size=64)),
+        (replace(SMALL, warp_layers=0), TrainConfig(steps=30, lr=1e-2, batch_size=0)),
+        (replace(SMALL, stable=False), TrainConfig(steps=30, lr=1e-2, batch_size=64)),
     ],
     ids=["snds-warped", "snds-convex-full-batch", "bc"],
 )
