@@ -599,13 +599,11 @@ class Scene:
             return torch.ones(x.shape[:-1], dtype=torch.bool, device=x.device)
         return (self.gammas(x) > 1.0).all(dim=-1)
 
-    def free_after(self, x: Tensor, h: Tensor) -> Tensor:
-        r"""Whether states (B, n) are free of the scene as it is h (B,) seconds later.
+    def gammas_after(self, x: Tensor, h: Tensor) -> Tensor:
+        r""":math:`\Gamma_k` at states (B, n) of the scene as it is h (B,) seconds later, (B, K).
 
         A translating shape at t + h seen from x is the shape at t seen from x - h u.
         """
-        if not self.bodies:
-            return torch.ones(x.shape[:-1], dtype=torch.bool, device=x.device)
         gammas = []
         for body in self.bodies:
             shifted = x
@@ -613,7 +611,9 @@ class Scene:
                 speed = torch.tensor(body.velocity, dtype=x.dtype, device=x.device)
                 shifted = x - h.unsqueeze(-1) * speed
             gammas.append(body.gamma(shifted))
-        return (torch.stack(gammas, dim=-1) > 1.0).all(dim=-1)
+        if not gammas:
+            return x.new_zeros((*x.shape[:-1], 0))
+        return torch.stack(gammas, dim=-1)
 
     def influenced(self, x: Tensor) -> Tensor:
         """Whether any body modulates the field at states (within its influence), (*,)."""
@@ -674,7 +674,9 @@ class Scene:
             e = effective[..., k : k + 1]
             alignment = (normal * radial).sum(-1, keepdim=True).clamp_min(_MIN_ALIGNMENT)
             a = (normal * out).sum(-1, keepdim=True) / alignment
-            lam_r = torch.where(a < 0, 1.0 - e, torch.ones_like(e))
+            # Within the margin (Gamma < 1) the radial eigenvalue turns negative: out again.
+            push = torch.where(gammas[k] < 1.0, (2.0 - gammas[k]) ** 2, 1.0).unsqueeze(-1)
+            lam_r = torch.where(a < 0, 1.0 - e * push, torch.ones_like(e))
             modulated = lam_r * a * radial + (1.0 + e) * (out - a * radial)
             out = torch.where(e > 0, modulated, out)
         return out + drift, torch.stack(gammas, dim=-1)
@@ -837,7 +839,7 @@ def avoid_step(
     sufficient: float = 0.5,
     max_halvings: int = 40,
     velocity: Tensor | None = None,
-    influenced: Tensor | None = None,
+    gammas: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, Tensor]:
     r"""One guarded Euler step of the modulated policy per state.
 
@@ -860,20 +862,19 @@ def avoid_step(
         sufficient: Armijo's fraction c of the promised decrease.
         max_halvings: Halvings tried before holding the state.
         velocity: The modulated velocity at x, (B, n), if known (else computed).
-        influenced: With it, whether a body is in reach of each state, (B,).
+        gammas: With it, every body's Gamma at x, (B, K).
 
     Returns:
         The next states (B, n), the steps taken (B,) (0: held), and the velocities used (B, n).
     """
     now = scene.at(t)
-    if velocity is None or influenced is None:
+    if velocity is None or gammas is None:
         velocity, gammas = _modulated(policy, now, x)
-        influenced = (gammas < 2.0).any(dim=-1)
     if isinstance(dt, Tensor):
         h = dt.to(x).clone()
     else:
         h = torch.full(x.shape[:-1], float(dt), dtype=x.dtype)
-    free_far = ~influenced
+    free_far = ~(gammas < 2.0).any(dim=-1)
     value = required = None
     if guard is not None:
         lyapunov, rate = guard
@@ -881,7 +882,10 @@ def avoid_step(
         required = sufficient * rate(x, value)
 
     def safe(index: Tensor, candidate: Tensor) -> Tensor:
-        ok = now.free_after(candidate, h[index])
+        # Free, or for a state already within a margin (a robot that lagged behind its
+        # command) no deeper: it may slide along or out, never further in.
+        later = now.gammas_after(candidate, h[index])
+        ok = ((later > 1.0) | (later >= gammas[index])).all(dim=-1)
         if value is not None:
             new = guard[0](candidate)
             old = value[index]
@@ -1068,15 +1072,14 @@ def _roll_out(
     held = 0
     active = torch.arange(count)
     moving = scene.moving
-    velocity, gammas = _modulated(policy, scene, x)
-    near = (gammas < 2.0).any(dim=-1)
+    velocity, near = _modulated(policy, scene, x)
     while len(active):
         xa = x[active]
         nominal = torch.minimum(h[active], horizon - clock[active])
         # Among moving obstacles every rollout shares one clock and takes the nominal step
         # (the obstacles do not wait for a shortened one); else the steps adapt per rollout.
         t = float(clock[active[0]]) if moving else 0.0
-        known = {} if moving else {"velocity": velocity[active], "influenced": near[active]}
+        known = {} if moving else {"velocity": velocity[active], "gammas": near[active]}
         # Twenty halvings (1e-6 of the period) tell a stall from a slow passage.
         candidate, taken, va = avoid_step(
             policy, scene, xa, dt=nominal, t=t, guard=guard, max_halvings=20, **known
@@ -1105,7 +1108,7 @@ def _roll_out(
         done = active[accept]
         x[done] = candidate[accept]
         if not moving:
-            velocity[done], near[done] = v_new[accept], (g_new[accept] < 2.0).any(dim=-1)
+            velocity[done], near[done] = v_new[accept], g_new[accept]
         clock[done] = clock[done] + tried[accept]
         later = scene.at(t + float(nominal.max())) if moving else scene
         clear = later.clearances(x[done]).min(dim=-1).values
@@ -1229,7 +1232,7 @@ def check_obstacles(
     )
     starts = free_starts(scene, demos.target, box_factor * extent, rollouts, rng)
     random = _roll_out(policy, scene, torch.as_tensor(starts), target, **settings)
-    demo_starts = torch.as_tensor(np.stack([d.positions[0] for d in demos]))
+    demo_starts = torch.tensor(np.stack([d.positions[0] for d in demos]))
     in_free = scene.free(demo_starts)
     from_demos = _roll_out(policy, scene, demo_starts[in_free], target, **settings)
     blocked, free_demos = [], []

@@ -24,12 +24,13 @@ from snds.plotting import (
     ROLLOUT_COLOR,
     _despine,
     _draw_demos,
+    _draw_scene,
     _draw_target,
     _save,
 )
 from snds.sim.arm import Arm
 from snds.sim.robots import get_robot
-from snds.sim.run import SimResult
+from snds.sim.run import SimResult, world_shapes
 
 GREY = (0.55, 0.55, 0.55, 1.0)
 ORANGE = (0.85, 0.28, 0.06, 1.0)
@@ -80,6 +81,8 @@ def render_frames(
                     np.array([placement.to_world(x) for x in beads]), radius=0.004, rgba=GREY
                 )
         arm.add_markers(placement.origin[None], radius=0.012, rgba=GREEN)
+        if result.config.obstacles is not None:
+            arm.add_obstacles(world_shapes(result.config.obstacles, placement))
         frames, shown = [], 0
         stride = max(1, len(result.times) // 150)
         for step in steps:
@@ -147,6 +150,8 @@ def plot_path(result: SimResult, demos: Demonstrations | PoseDemonstrations | No
             label="end effector" if i == 0 else None,
         )
     _draw_target(plane, result.placement.target)
+    if result.config.obstacles is not None:
+        _draw_obstacles_in_view(plane, result, demos)
     plane.set_aspect("equal", adjustable="datalim")
     plane.set_xlabel("x1 (task units)")
     plane.set_ylabel("x2 (task units)")
@@ -164,6 +169,21 @@ def plot_path(result: SimResult, demos: Demonstrations | PoseDemonstrations | No
         angle.set_title("orientation error")
     fig.suptitle(_headline(result), fontsize="medium")
     return _save(fig, path)
+
+
+def _draw_obstacles_in_view(ax, result: SimResult, demos) -> None:
+    """The run's obstacles (filled) and margins (dashed) over the path's view, in the plane
+    of x1, x2 through the target."""
+    seen = [result.states] + ([] if demos is None else [d.positions for d in demos])
+    points = np.concatenate([p[:, : result.states.shape[1]] for p in seen])
+    low, high = points.min(axis=0), points.max(axis=0)
+    pad = 0.1 * (high - low).max()
+    x1 = np.linspace(low[0] - pad, high[0] + pad, 200)
+    x2 = np.linspace(low[1] - pad, high[1] + pad, 200)
+    grid = np.tile(result.placement.target, (x1.size * x2.size, 1))
+    mesh1, mesh2 = np.meshgrid(x1, x2)
+    grid[:, 0], grid[:, 1] = mesh1.ravel(), mesh2.ravel()
+    _draw_scene(ax, result.config.obstacles, x1, x2, grid)
 
 
 def _draw_error(
@@ -201,4 +221,8 @@ def _headline(result: SimResult) -> str:
         text += f" and {result.final_orientation_error:.3f} rad"
     if result.recovery_time is not None:
         text += f", recovered {result.recovery_time:.2f} s after the push"
+    if result.obstacle_clearance is not None:
+        text += f"; clearance {1000 * result.obstacle_clearance:.1f} mm"
+        if result.contact_steps is not None:
+            text += ", no contact" if result.contact_steps == 0 else ", touched an obstacle"
     return text
