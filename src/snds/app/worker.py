@@ -176,6 +176,7 @@ class Job:
         saved_after: Seconds from the start until the model was saved.
         finished_after: Seconds from the start until the job ended.
         worker_cpu_seconds: CPU seconds the worker used.
+        saved_cpu_seconds: CPU seconds the worker had used when the model was saved.
         version: Bumped at every change (the event stream sends each).
         milestones: The status at each change of state, in order.
     """
@@ -193,6 +194,7 @@ class Job:
     saved_after: float | None = None
     finished_after: float | None = None
     worker_cpu_seconds: float = 0.0
+    saved_cpu_seconds: float | None = None
     version: int = 0
     process: Any = field(default=None, repr=False)
     cancelled: bool = False
@@ -228,6 +230,7 @@ class Job:
             ),
             "saved_after": self.saved_after,
             "worker_cpu_seconds": self.worker_cpu_seconds,
+            "saved_cpu_seconds": self.saved_cpu_seconds,
         }
 
 
@@ -402,7 +405,13 @@ class Jobs:
                 self._finish(job, "error", error=f"{type(error).__name__}: {error}")
                 job.process.kill()
                 return True
-            self._update(job, state="checking", saved_after=saved_after, worker_cpu_seconds=cpu)
+            self._update(
+                job,
+                state="checking",
+                saved_after=saved_after,
+                saved_cpu_seconds=cpu,
+                worker_cpu_seconds=cpu,
+            )
         elif event in ("done", "error"):
             self._finish(job, event, error=message.get("message"), worker_cpu_seconds=cpu)
             return True

@@ -702,7 +702,8 @@
     app.showBC = $("bc").checked;
     app.rollout = null;
     rolloutToken += 1;
-    if (app.showBC && !app.jobs.bc) train("bc");
+    const bc = app.jobs.bc;
+    if (app.showBC && (!bc || ["error", "cancelled"].includes(bc.status.state))) train("bc");
     updateButtons();
     draw();
   };
