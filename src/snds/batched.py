@@ -155,7 +155,7 @@ def _signature(one: _Fit) -> tuple:
     """The shapes of the tensors a fit's steps draw, from a copy of its generator."""
     probe = torch.Generator().manual_seed(0)
     probe.set_state(one.generator.get_state())
-    inputs = _draw_step(one.policy, one.samples, one.config, probe)
+    inputs = _draw_step(one.policy, one.samples, one.config, probe, 0)
     return tuple(None if v is None else _shapes(v) for v in _fields(inputs).values())
 
 
@@ -220,7 +220,7 @@ def _fit_group(fits: list[_Fit], *, progress: bool) -> None:
         inputs = []
         for one in active:
             one.state.step = step
-            inputs.append(_draw_step(one.policy, one.samples, one.config, one.generator))
+            inputs.append(_draw_step(one.policy, one.samples, one.config, one.generator, step))
         losses = losses_of(_stacked(active, "parameters") | buffers, _stack(inputs))
         values = losses.detach().tolist()
         diverged = [_diverged(value, one.state) for value, one in zip(values, active)]
