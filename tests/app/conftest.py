@@ -8,12 +8,6 @@ import time
 import numpy as np
 import pytest
 
-pytest.importorskip("starlette", reason="snds app needs the app extra (pip install 'snds[app]')")
-
-from starlette.testclient import TestClient  # noqa: E402
-
-from snds.app import create_app  # noqa: E402
-
 #: Training and check sizes that keep a job to a few seconds (the page's defaults are
 #: snds train's; these only shrink the work).
 TINY = {"steps": 30, "rollouts": 20, "samples": 500}
@@ -34,7 +28,7 @@ def spiral_strokes(count: int = 3, points: int = 80) -> list[list[list[float]]]:
     return strokes
 
 
-def wait_for(client: TestClient, job: str, states: set[str], timeout: float = 120.0) -> dict:
+def wait_for(client, job: str, states: set[str], timeout: float = 120.0) -> dict:
     """Polls a job until it is in one of ``states``."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
@@ -45,7 +39,7 @@ def wait_for(client: TestClient, job: str, states: set[str], timeout: float = 12
     raise AssertionError(f"job {job} never reached {states}: {status}")
 
 
-def read_events(client: TestClient, job: str) -> list[dict]:
+def read_events(client, job: str) -> list[dict]:
     """Every event of a job's stream, until it ends."""
     events = []
     with client.stream("GET", f"/api/jobs/{job}/events") as response:
@@ -58,7 +52,13 @@ def read_events(client: TestClient, job: str) -> list[dict]:
 
 @pytest.fixture(scope="module")
 def client():
-    with TestClient(create_app(), base_url="http://127.0.0.1") as test_client:
+    # Imported here: without the app extra the tests that need it skip, the rest still run.
+    testclient = pytest.importorskip(
+        "starlette.testclient", reason="snds app needs the app extra (pip install 'snds[app]')"
+    )
+    from snds.app import create_app
+
+    with testclient.TestClient(create_app(), base_url="http://127.0.0.1") as test_client:
         yield test_client
 
 

@@ -142,3 +142,18 @@ def test_draw_train_push_and_compare_with_bc(page, shots: Path, helpers) -> None
     page.wait_for_function("sndsApp.rollout && sndsApp.rollout.status === 'running'")
     time.sleep(1.5)
     page.screenshot(path=str(shots / "app_bc.png"))
+
+    # AND in draw mode: undo, the target dragged (which makes the models stale), clear
+    page.click("#mode-draw")
+    page.click("#undo")
+    assert page.evaluate("sndsApp.strokes.length") == 2
+    goal = page.evaluate("sndsApp.strokes[0][sndsApp.strokes[0].length - 1].slice(0, 2)")
+    x, y = _screen(page, goal)
+    page.mouse.move(x, y)
+    page.mouse.down()
+    page.mouse.move(x + 30, y - 20, steps=5)
+    page.mouse.up()
+    moved = page.evaluate("sndsApp.target")
+    assert moved != goal and page.evaluate("sndsApp.jobs.snds") is None
+    page.click("#clear")
+    assert page.evaluate("sndsApp.strokes.length") == 0
