@@ -345,3 +345,58 @@ def test_scene_files_json_and_yaml(tmp_path):
     with pytest.raises(ConfigError, match="unknown key 'centre'"):
         load_scene(tmp_path / "bad.json")
     assert math.isfinite(float(loaded.gammas(torch.zeros(1, 2, dtype=torch.float64)).min()))
+
+
+@pytest.mark.slow
+def test_onnx_export_includes_a_fixed_obstacle_set(tmp_path, capsys):
+    # GIVEN a saved small model and obstacles across its demonstrations
+    pytest.importorskip("onnxruntime")
+    from snds.export import load_onnx
+    from snds.io import save_model
+
+    demos = spiral_demos()
+    save_model(make_policy(demos), tmp_path / "m", extra={"data": {}})
+    specs = ["--obstacle", "sphere:3,3,1,margin=0.2", "--obstacle", "box:-3,3,1,0.5,angle=20"]
+    # WHEN exported with them (float64; the export checks itself against the library)
+    out = tmp_path / "p.onnx"
+    args = ["--quiet", "export", str(tmp_path / "m"), "--dtype", "float64", "--out", str(out)]
+    args += ["--samples", "500"]
+    assert main([*args, *specs]) == 0
+    # THEN the file computes the modulated field next to the obstacles too
+    from snds.io import load_model
+    from snds.obstacles import ModulatedPolicy
+
+    scene = Scene(obstacles=tuple(parse_obstacle(s) for s in specs[1::2]))
+    x = near_boundary(scene, 200, 0.5, seed=5)
+    policy, _ = load_model(tmp_path / "m")
+    with torch.no_grad():
+        wanted = ModulatedPolicy(policy.double(), scene)(x).numpy()
+    assert np.abs(load_onnx(out)(x.numpy()) - wanted).max() < 1e-9 * np.abs(wanted).max()
+
+
+def test_export_refuses_moving_obstacles_with_one_line(tmp_path, capsys):
+    from snds.io import save_model
+
+    save_model(make_policy(spiral_demos()), tmp_path / "m", extra={"data": {}})
+    before = sorted(p.name for p in (tmp_path / "m").iterdir())
+    code = main(["export", str(tmp_path / "m"), "--obstacle", "sphere:3,3,1,velocity=1/0"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "moving obstacles" in err[0], err
+    assert sorted(p.name for p in (tmp_path / "m").iterdir()) == before
+
+
+@pytest.mark.slow
+def test_simulated_arm_goes_around_a_sphere_without_touching_it():
+    # GIVEN the linear field on the iiwa's plane (0.2 m per unit) and a 3 cm ball on its path
+    pytest.importorskip("pybullet")
+    from snds.sim import SimConfig, simulate
+
+    scene = Scene(obstacles=(Sphere(center=(0.5, 0.02), radius=0.15, margin=0.05),))
+    config = SimConfig(robot="iiwa", time_limit=12.0, obstacles=scene)
+    # WHEN it runs from behind the ball
+    result = simulate(FieldPolicy(2), np.array([1.0, 0.05]), config)
+    # THEN it reaches the target, the tool keeps out of the ball and no link touches it
+    assert result.reached and result.final_error <= 0.001
+    assert result.contact_steps == 0 and result.arm_obstacle_distance > 0
+    assert result.obstacle_clearance > 0
+    assert bool(scene.clearances(torch.as_tensor(result.states)).min() > 0)

@@ -27,7 +27,6 @@ from snds.errors import ConfigError, SNDSError
 from snds.evaluate import evaluate
 from snds.io import load_model, remove_temporaries, save_model, to_jsonable, write_json
 from snds.policy import DEFAULT_WARP_LAYERS, Policy, PolicyConfig, StablePolicy
-from snds.stability import ROLLOUTS, SAMPLES
 from snds.train import CHECKPOINT, TrainConfig, TrainResult, fit
 
 #: ``snds train --architecture`` choices: overrides of :class:`PolicyConfig`'s network sizes.
@@ -109,10 +108,10 @@ def _data_arguments(parser: argparse.ArgumentParser, *, required: bool) -> None:
 
 def _check_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
-        "--rollouts", type=int, default=ROLLOUTS, help="random starts of the stability check"
+        "--rollouts", type=int, default=1000, help="random starts of the stability check"
     )
     parser.add_argument(
-        "--samples", type=int, default=SAMPLES, help="states of the decrease-condition check"
+        "--samples", type=int, default=100_000, help="states of the decrease-condition check"
     )
     parser.add_argument(
         "--grid", action="store_true", help="stability rollouts from a grid, not random starts"
@@ -744,7 +743,10 @@ def _simulate(args: argparse.Namespace) -> int:
 def _export(args: argparse.Namespace) -> int:
     from snds import export
 
+    scene = _scene(args)
     policy, _ = load_model(args.model)
+    if scene is not None:
+        policy = _with_obstacles(policy, scene)
     out = args.out or args.model / f"policy.{args.format}"
     dtype = getattr(torch, args.dtype)
     path = export.FORMATS[args.format](policy, out, dtype=dtype)
@@ -766,6 +768,25 @@ def _export(args: argparse.Namespace) -> int:
             f"{check.max_abs_diff:.2e} absolute)"
         )
     return 0
+
+
+def _with_obstacles(policy: Policy, scene) -> Policy:
+    """The policy of ``snds export --obstacle``: the modulation in the graph (fixed obstacles,
+    position models), or a one-line refusal of what the graph cannot hold."""
+    from snds.obstacles import ModulatedPolicy
+    from snds.se3 import PosePolicy
+
+    if isinstance(policy, PosePolicy):
+        raise ConfigError(
+            "obstacles cannot be exported with a pose model (its graph maps poses to twists); "
+            "modulate the linear part in the controller (snds.obstacles.modulate_twist)"
+        )
+    if scene.moving:
+        raise ConfigError(
+            "moving obstacles (velocity=) cannot be exported: the graph has no time input"
+        )
+    scene.check(policy.dim, policy.normalization.center)
+    return ModulatedPolicy(policy, scene)
 
 
 def _app(args: argparse.Namespace) -> int:

@@ -416,6 +416,8 @@ def export_onnx(policy: Policy, path: str | Path, *, dtype: torch.dtype = torch.
         **signature(policy).metadata(),
         "snds.dtype": str(dtype).removeprefix("torch."),
         "snds.method": policy.method,
+        # A modulated policy (snds.obstacles) records its fixed obstacles.
+        **getattr(policy, "export_metadata", dict)(),
     }
     for key, value in metadata.items():
         entry = model.metadata_props.add()

@@ -661,7 +661,12 @@ class Scene:
         weights = torch.stack([p[0] for p in parts], dim=-1)  # (*, K)
         effective = weights * _shares(weights)
         if target is not None:
-            turn = 1.0 - (1.0 - weights).prod(dim=-1, keepdim=True)
+            # Turned only as far as v heads into a body: a field passing by keeps its course.
+            unit = _safe_normalize(v)
+            into = torch.stack(
+                [(-(unit * radial).sum(-1)).clamp(0.0, 1.0) for _, _, radial in parts], dim=-1
+            )
+            turn = 1.0 - (1.0 - weights * into).prod(dim=-1, keepdim=True)
             v = torch.where(turn > 0, _turn(v, target.to(x) - x, turn), v)
         drift = torch.zeros_like(v)
         for k, body in enumerate(bodies):
@@ -797,6 +802,12 @@ class ModulatedPolicy(Policy):
     def method(self) -> str:
         """The base policy's method."""
         return self.base.method
+
+    def export_metadata(self) -> dict[str, str]:
+        """What an ONNX export records of the obstacles (``snds.obstacles``, the scene as
+        JSON): the graph computes the modulated field, not the step guard of
+        :func:`avoid_step`, which a controller applies itself."""
+        return {"snds.obstacles": json.dumps(self.scene.to_dict())}
 
     def field(self, x: Tensor) -> Tensor:
         """The modulated field in model coordinates, (*, n) -> (*, n)."""
@@ -1237,7 +1248,7 @@ def check_obstacles(
     from_demos = _roll_out(policy, scene, demo_starts[in_free], target, **settings)
     blocked, free_demos = [], []
     for i, demo in enumerate(demos):
-        path = torch.as_tensor(demo.positions)
+        path = torch.tensor(demo.positions)
         (free_demos if bool(scene.free(path).all()) else blocked).append(i)
     dtw_free = dtw_plain = None
     if free_demos:
