@@ -13,6 +13,7 @@ import os
 import socket
 import threading
 import time
+import zipfile
 from pathlib import Path
 
 import pytest
@@ -142,6 +143,21 @@ def test_draw_train_push_and_compare_with_bc(page, shots: Path, helpers) -> None
     page.wait_for_function("sndsApp.rollout && sndsApp.rollout.status === 'running'")
     time.sleep(1.5)
     page.screenshot(path=str(shots / "app_bc.png"))
+
+    # AND the page's downloads: the model folder, its ONNX file, the strokes' CSV
+    with page.expect_download(timeout=120_000) as download:
+        page.click("#dl-model")
+    with zipfile.ZipFile(download.value.path()) as archive:
+        names = {Path(name).name for name in archive.namelist()}
+    assert names == {"model.json", "model.safetensors", "metrics.json", "loss.json", "strokes.csv"}
+    with page.expect_download(timeout=120_000) as download:
+        page.click("#dl-onnx")
+    assert Path(download.value.path()).stat().st_size > 10_000
+    assert page.text_content("#status") == "Downloaded snds-bc-policy.onnx."
+    with page.expect_download(timeout=120_000) as download:
+        page.click("#dl-strokes")
+    rows = Path(download.value.path()).read_text().splitlines()
+    assert rows[0] == "demo,t,x1,x2" and {row.split(",")[0] for row in rows[1:]} == {"0", "1", "2"}
 
     # AND in draw mode: undo, the target dragged (which makes the models stale), clear
     page.click("#mode-draw")
