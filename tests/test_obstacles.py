@@ -400,3 +400,12 @@ def test_simulated_arm_goes_around_a_sphere_without_touching_it():
     assert result.contact_steps == 0 and result.arm_obstacle_distance > 0
     assert result.obstacle_clearance > 0
     assert bool(scene.clearances(torch.as_tensor(result.states)).min() > 0)
+
+
+def test_bad_input_doc_lists_every_bad_spec():
+    import re
+    from pathlib import Path
+
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "bad-input.md").read_text()
+    listed = re.findall(r"test_bad_obstacle_specs_exit_2_with_one_line\[(.+?)\]", doc)
+    assert sorted(listed) == sorted(BAD_SPECS)
