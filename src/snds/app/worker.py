@@ -252,6 +252,7 @@ class Jobs:
         self.on_saved = on_saved
         self.jobs: dict[str, Job] = {}
         self.lock = threading.Lock()
+        self.starting = threading.Lock()
         self.spare: subprocess.Popen | None = None
         self.closed = False
 
@@ -299,15 +300,17 @@ class Jobs:
         except BaseException:
             shutil.rmtree(job.folder, ignore_errors=True)
             raise
-        for running in self.running():
-            self.cancel(running)
-        with self.lock:
-            spare, self.spare = self.spare, None
-        worker = spare if spare is not None and spare.poll() is None else self._worker()
-        job.process = worker
-        job.started = time.perf_counter()
-        with self.lock:
-            self.jobs[job_id] = job
+        # One start at a time: two requests at once must not leave two jobs running.
+        with self.starting:
+            for running in self.running():
+                self.cancel(running)
+            with self.lock:
+                spare, self.spare = self.spare, None
+            worker = spare if spare is not None and spare.poll() is None else self._worker()
+            job.process = worker
+            job.started = time.perf_counter()
+            with self.lock:
+                self.jobs[job_id] = job
         argv = [part.replace("{model}", str(job.model)) for part in argv]
         try:
             worker.stdin.write(json.dumps(argv) + "\n")
