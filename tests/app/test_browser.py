@@ -156,7 +156,8 @@ def test_draw_train_push_and_compare_with_bc(page, shots: Path, helpers) -> None
     assert page.text_content("#status") == "Downloaded snds-bc-policy.onnx."
     with page.expect_download(timeout=120_000) as download:
         page.click("#dl-strokes")
-    rows = Path(download.value.path()).read_text().splitlines()
+    strokes_csv = Path(download.value.path())
+    rows = strokes_csv.read_text().splitlines()
     assert rows[0] == "demo,t,x1,x2" and {row.split(",")[0] for row in rows[1:]} == {"0", "1", "2"}
 
     # AND in draw mode: undo, the target dragged (which makes the models stale), clear
@@ -173,3 +174,7 @@ def test_draw_train_push_and_compare_with_bc(page, shots: Path, helpers) -> None
     assert moved != goal and page.evaluate("sndsApp.jobs.snds") is None
     page.click("#clear")
     assert page.evaluate("sndsApp.strokes.length") == 0
+    # AND the downloaded strokes open again, as they were trained on
+    page.set_input_files("#upload", str(strokes_csv))
+    page.wait_for_function("sndsApp.strokes.length === 3")
+    assert page.evaluate("sndsApp.target") == [float(v) for v in rows[-1].split(",")[2:]]
