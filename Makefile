@@ -7,7 +7,7 @@ BIN := $(VENV)/bin
 # the package metadata keeps an open range so it installs anywhere.
 PIP_INSTALL := $(BIN)/python -m pip install --quiet -c constraints.txt
 
-.PHONY: install demo test lint format benchmark clean
+.PHONY: install demo test lint format benchmark docs clean
 
 install: $(VENV)/.installed
 
@@ -35,5 +35,12 @@ format: install
 benchmark: install
 	$(BIN)/python benchmarks/core.py
 
+# API reference from the docstrings (pdoc, in the dev extra) into site/, git-ignored. Every
+# module is named, since snds's __all__ alone would hide the submodules.
+docs: install
+	$(BIN)/pdoc --docformat google --math -o site snds $$($(BIN)/python -c "import pkgutil, snds; \
+	print(' '.join(m.name for m in pkgutil.iter_modules(snds.__path__, 'snds.') \
+	if not m.name.startswith(('snds._', 'snds.__'))))")
+
 clean:
-	rm -rf $(VENV) runs
+	rm -rf $(VENV) runs site
