@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import copy
 import dataclasses
 import json
 import math
@@ -480,7 +481,10 @@ def _save_run(
     out: Path, policy: Policy, result: TrainResult, *, data: dict, split: dict, train: TrainConfig
 ) -> None:
     """Writes a trained model with the record of how it was trained, and its loss history."""
-    policy.to("cpu")
+    # The file is written from a CPU copy: the policy stays on its device (--device) for the
+    # stability check that follows.
+    if policy.center.device.type != "cpu":
+        policy = copy.deepcopy(policy).to("cpu")
     # Results of an earlier run must not sit beside the new model if this one is killed.
     for name in ("metrics.json", "loss.json"):
         (out / name).unlink(missing_ok=True)
@@ -553,7 +557,7 @@ def _train(args: argparse.Namespace) -> int:
     metrics["train_seconds"] = result.seconds
     write_json(out / "metrics.json", to_jsonable(metrics))
     if args.plot:
-        _write_plots(policy, demos, out, result.history)
+        _write_plots(policy.to("cpu"), demos, out, result.history)
     # Only now is the run complete: until here a kill leaves the checkpoint to resume from.
     checkpoint.unlink(missing_ok=True)
     if not args.quiet:

@@ -48,10 +48,13 @@ def reproduce(policy: Policy, demos: Demonstrations, indices: list[int]) -> list
     """
     if not indices:
         return []
+    device = getattr(policy, "center", torch.empty(0)).device
     steps = [len(path_reference(demos[i])) - 1 for i in indices]
-    dt = torch.tensor([demos[i].duration / k for i, k in zip(indices, steps)], dtype=torch.float64)
-    x = torch.tensor(np.stack([demos[i].positions[0] for i in indices]), dtype=torch.float64)
-    remaining = torch.tensor(steps)
+    durations = [demos[i].duration / k for i, k in zip(indices, steps)]
+    dt = torch.tensor(durations, dtype=torch.float64, device=device)
+    starts = np.stack([demos[i].positions[0] for i in indices])
+    x = torch.tensor(starts, dtype=torch.float64, device=device)
+    remaining = torch.tensor(steps, device=device)
     states = [x]
     with torch.no_grad():
         for _ in range(max(steps)):

@@ -231,11 +231,13 @@ def check_stability(
         points = _grid_box(target, half_width, rollouts)
     else:
         points = _uniform_box(target, half_width, rollouts, rng)
-    starts = torch.as_tensor(points)
+    # On the policy's device (a policy trained with --device cuda is checked there too).
+    device = getattr(policy, "center", torch.empty(0)).device
+    starts = torch.as_tensor(points, device=device)
     arrivals = _roll_out_and_settle(
         policy,
         starts,
-        torch.tensor(target),
+        torch.tensor(target, device=device),
         dt=dt,
         horizon=horizon,
         tolerance=tolerance,
@@ -253,12 +255,13 @@ def check_stability(
         upper = 10.0 * demos.max_duration()
         visited = arrivals.visited
         if len(visited) > chunk:
-            visited = visited[torch.as_tensor(rng.choice(len(visited), chunk, replace=False))]
+            pick = torch.as_tensor(rng.choice(len(visited), chunk, replace=False), device=device)
+            visited = visited[pick]
         safe_dt = safe_dt_rollouts = largest_safe_step(policy, visited, upper=upper)
     if policy.stable and samples > 0:
         points = _uniform_box(target, sample_box_factor * extent, samples, rng)
         for begin in range(0, samples, chunk):
-            batch = torch.as_tensor(points[begin : begin + chunk])
+            batch = torch.as_tensor(points[begin : begin + chunk], device=device)
             violations += decrease_violations(policy, batch)
             safe_dt = min(safe_dt, largest_safe_step(policy, batch, upper=safe_dt))
         checked = samples
@@ -334,7 +337,8 @@ def settle_level(lyapunov: torch.nn.Module, radius: float, *, dim: int, count: i
         generator = torch.Generator().manual_seed(0)
         directions = torch.randn(count, dim, generator=generator, dtype=torch.float64)
         directions = directions / directions.norm(dim=-1, keepdim=True)
-    return 0.5 * float(lyapunov(radius * directions).min())
+    like = next(lyapunov.parameters(), torch.empty(0, dtype=torch.float64))
+    return 0.5 * float(lyapunov((radius * directions).to(like)).min())
 
 
 @dataclass(frozen=True)
@@ -384,13 +388,13 @@ def _roll_out_and_settle(
     """
     count = len(starts)
     x = starts.clone()
-    time = torch.zeros(count, dtype=x.dtype)
-    h = torch.full((count,), dt, dtype=x.dtype)
+    time = torch.zeros_like(x[:, 0])
+    h = torch.full_like(time, dt)
     # Time since which each rollout has been within the tolerance (NaN while outside).
-    arrival = torch.zeros(count, dtype=x.dtype)
-    active = torch.arange(count)
+    arrival = torch.zeros_like(time)
+    active = torch.arange(count, device=x.device)
     visited = []
-    shortened = torch.zeros(count, dtype=torch.bool)
+    shortened = torch.zeros(count, dtype=torch.bool, device=x.device)
     level = value = lyapunov = rate = None
     if policy.stable:
         radius = 0.5 * tolerance / policy.normalization.length
