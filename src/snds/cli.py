@@ -28,6 +28,7 @@ from snds.errors import ConfigError, SNDSError
 from snds.evaluate import evaluate
 from snds.io import load_model, remove_temporaries, save_model, to_jsonable, write_json
 from snds.policy import DEFAULT_WARP_LAYERS, Policy, PolicyConfig, StablePolicy
+from snds.stability import ROLLOUTS, SAMPLES
 from snds.train import CHECKPOINT, TrainConfig, TrainResult, fit
 
 #: ``snds train --architecture`` choices: overrides of :class:`PolicyConfig`'s network sizes.
@@ -109,10 +110,10 @@ def _data_arguments(parser: argparse.ArgumentParser, *, required: bool) -> None:
 
 def _check_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
-        "--rollouts", type=int, default=1000, help="random starts of the stability check"
+        "--rollouts", type=int, default=ROLLOUTS, help="random starts of the stability check"
     )
     parser.add_argument(
-        "--samples", type=int, default=100_000, help="states of the decrease-condition check"
+        "--samples", type=int, default=SAMPLES, help="states of the decrease-condition check"
     )
     parser.add_argument(
         "--grid", action="store_true", help="stability rollouts from a grid, not random starts"
