@@ -48,15 +48,14 @@ from snds.se3 import PosePolicy
 #: relative to max(|velocity|, top speed) of each state. float64 graphs agree to rounding
 #: (about 1e-13). float32 cannot promise 1e-5: next to the target V and its gradient are small
 #: differences of order-1 numbers and the projection divides by |grad V|, so rounding is
-#: amplified there. The float32 library itself is up to 1.1e-4 of the top speed from its
-#: float64 value (the compact architecture on Sine; 1.6e-5 with the default one), and two
-#: float32 implementations that order the sums differently (onnxruntime's kernels, torch's)
-#: differ by up to 1.4e-4 on the trained LASA models measured (benchmarks/README.md).
+#: amplified there, and two float32 implementations that order the sums differently
+#: (onnxruntime's kernels, torch's) differ by about as much as each differs from float64
+#: (measured figures: docs/design.md, "Export accuracy").
 TOLERANCE = {torch.float64: 1e-5, torch.float32: 3e-4}
 #: A float32 export also passes when it is no farther from the exact (float64) policy than
-#: this many times the float32 library itself: two float32 implementations may each be
-#: 8e-4 from the exact policy next to the target and differ from each other by as much (the
-#: compact network on Sine with the near-target decay; benchmarks/README.md).
+#: this many times the float32 library itself: next to the target two float32
+#: implementations may each be far from the exact policy and differ from each other by as
+#: much (docs/design.md, "Export accuracy").
 ROUNDING_SLACK = 1.25
 #: Spread of the random states of :func:`random_states`, in units of the demonstrations'
 #: extent: from near the data out to 1000x.
@@ -441,8 +440,8 @@ def _scalar_tensor_onnx(
 
 def _matmul_onnx(self, other):
     # A product with a vector (the ICNN's output weights, its linear term) as a product with
-    # a one-column matrix: onnxruntime's MatMul with a 1-D operand is a slow path (measured,
-    # benchmarks/README.md: 10,000 states 29 -> 24 ms of CPU on one core); the same maths.
+    # a one-column matrix: onnxruntime's MatMul with a 1-D operand is a slow path
+    # (docs/design.md, "Export graph and latency"); the same maths.
     from onnxscript import opset18 as op
 
     if len(other.shape) != 1 or len(self.shape) < 2:
@@ -516,8 +515,8 @@ class OnnxPolicy:
 
     * **One state per call** (the control loop) runs on input and output buffers bound to
       the session once (onnxruntime's IO binding): the state is copied in, the velocity
-      copied out, and nothing else is allocated or converted; 3-6 us less per call than
-      ``session.run`` (measured, benchmarks/README.md).
+      copied out, and nothing else is allocated or converted, which saves ``session.run``'s
+      own conversions on every call (docs/design.md).
     * **Batches** of at least ``threads x`` :data:`MIN_ROWS_PER_THREAD` states are split into
       ``threads`` contiguous chunks that run at the same time on the one session
       (onnxruntime releases the GIL and lets several threads run a session). The graph is

@@ -12,9 +12,8 @@ The fit has three steps, written here from the paper's maths:
    BIC over 1..K_max, fitted by default to the training pairs :math:`(x, \dot x)` and
    marginalised to positions (``features="position"`` fits positions alone). The paper uses
    a Bayesian non-parametric, "physically consistent" mixture whose clusters also respect
-   the motion's direction; the joint mixture is a plain stand-in with the same aim, and on
-   LASA (Sine, Angle, GShape, PShape, CShape) its held-out velocity MSE was 10-30% lower
-   than that of the mixture over positions.
+   the motion's direction; the joint mixture is a plain stand-in with the same aim, and it
+   fits better than the mixture over positions (docs/design.md, "The baselines' defaults").
 2. **Lyapunov matrix P** (convex stand-in for the paper's non-convex estimate):
 
    .. math:: \min_P \frac1N \sum_i \max\Big(0, \frac{x_i^\top P \dot x_i}
@@ -37,10 +36,9 @@ The fit has three steps, written here from the paper's maths:
    reduces the N samples to a (Kn x Kn) system: the program's size does not grow with N.
 
 Solved with cvxpy and Clarabel (or SCS). The default :math:`\epsilon = 0.05` (per unit of
-model time, in which a demonstration lasts a few units) was measured on LASA (Sine, Angle,
-GShape, PShape, CShape): against 0.02 it changed the held-out velocity MSE by at most 6%,
-and every random start of the stability check arrived, where with :math:`10^{-3}` or 0.02,
-2-3% of them on Angle or PShape had not (blends far from the data contracting too slowly).
+model time, in which a demonstration lasts a few units) was chosen by measurement
+(docs/design.md, "The baselines' defaults"): smaller margins let blends far from the data
+contract too slowly to arrive in useful time.
 
 **Guarantee:** after solving, the stored :math:`A_k` and P are checked in float64
 (:func:`~snds.baselines.mixture.stability_margin`): :math:`P \succ 0` and

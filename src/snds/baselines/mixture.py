@@ -53,8 +53,8 @@ def single_threaded() -> Iterator[None]:
     """One BLAS / OpenMP thread (NumPy, scikit-learn) inside the block.
 
     The fits work on a few thousand points and matrices of a few dozen rows: threads cost far
-    more in synchronisation than they save (50x slower on a busy machine, measured), and
-    benchmark runs already fill the cores side by side.
+    more in synchronisation than they save, and benchmark runs already fill the cores side
+    by side.
     """
     with require("threadpoolctl").threadpool_limits(limits=1):
         yield

@@ -18,12 +18,11 @@ triangular step per layer, with no autograd (checked against autograd in the tes
 
 The default couplings are additive (:math:`y_b = x_b + t(x_a)`, NICE-style, a zero
 log-scale), so that the Jacobian and its inverse stay bounded over all of
-:math:`\mathbb{R}^n`. Affine couplings (``max_log_scale > 0``, the paper's) fit LASA somewhat
-better (test velocity MSE, paper scale, Sine .0047 vs .0066, Angle .0039 vs .0047, seed 0),
-but their field grows without bound away from the data (the term
-:math:`x_b e^s \partial s / \partial x_a` compounds over the layers) and explicit Euler
-rollouts with the demonstrations' time step blow up: 60% (Sine) and 38% (Angle) of the
-stability check's random starts diverged with S = 2, none with additive couplings.
+:math:`\mathbb{R}^n`. Affine couplings (``max_log_scale > 0``, the paper's) fit somewhat
+better, but their field grows without bound away from the data (the term
+:math:`x_b e^s \partial s / \partial x_a` compounds over the layers), so explicit Euler
+rollouts with the demonstrations' time step can blow up (measured: docs/design.md, "The
+baselines' defaults").
 
 Everything here is in the task's model coordinates, where the target is the origin.
 
@@ -267,11 +266,8 @@ class SDSEF(Method):
     """SDS-EF trained on velocities by :func:`snds.train.fit` (MSE, as the paper).
 
     The same optimiser and budget as SNDS (the :class:`~snds.train.TrainConfig` defaults:
-    3,000 Adam steps, batch 512, lr 1e-2 with warm-up and cosine decay, model coordinates),
-    on the demonstrated states as the paper (no ``position_noise``).
-    On LASA Sine (additive couplings), lr 3e-3 and 3e-2, 128 features, 16 layers or batch 256
-    all ended at test velocity MSE (paper scale) .0057-.0098; the loss still falls slowly at
-    the end. A fit costs about 1.5x the CPU time of SNDS's (Sine: 30 s vs 20 s, one thread).
+    Adam with warm-up and cosine decay, its steps, batch and learning rate, in model
+    coordinates), on the demonstrated states as the paper (no ``position_noise``).
 
     Attributes:
         name: Its key in :data:`snds.methods.METHODS`.

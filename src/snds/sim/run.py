@@ -384,9 +384,8 @@ class PoseCommander:
 
         With a Lyapunov function the twist is scaled down so that holding it for one control
         period decreases V enough (:meth:`snds.se3.PoseGuard.safe_twist`): a stiff field
-        would otherwise make the arm chatter between two poses at constant V (Messy Snake
-        at 100 Hz: the commanded joint velocities flipped sign every period, 0.10 m from the
-        target).
+        would otherwise make the arm chatter between two poses at constant V, the commanded
+        joint velocities flipping sign every period (docs/design.md).
         """
         position, orientation = self.pose_placement.to_task(pose.position, pose.orientation)
         x = torch.as_tensor(np.concatenate([position, orientation]))[None]
