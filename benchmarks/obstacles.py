@@ -14,7 +14,8 @@ distance of a demonstrated position from the target), with the default influence
 radius). Their centres are points of demonstration 0 at the fractions of its arc length
 (0.5), (0.35, 0.65) or (0.3, 0.5, 0.7); a centre closer than 2 (R + m) + R to an earlier one,
 or than R + m + R to the target, moves on along the path by 0.05 of its length until it is
-not. The 3-D task gets one box of half-widths 0.08 extent, turned by 30 degrees about z,
+not (and is dropped if that takes it past 0.95: Worm keeps 2 of its 3). The 3-D task gets
+one box of half-widths 0.08 extent, turned by 30 degrees about z,
 margin 0.02 extent, centred on demonstration 0 at half its arc length.
 
 Usage::
@@ -22,7 +23,8 @@ Usage::
     python benchmarks/obstacles.py --runs runs/obst            # 8 LASA motions + 3-D
     python benchmarks/obstacles.py --runs runs/obst --motions Sine --rollouts 200
 
-Writes ``benchmarks/results/obstacles/{MOTION}.json``, ``summary.csv`` and ``summary.md``.
+Writes ``benchmarks/results/obstacles/{MOTION}.json``, ``summary.csv`` and ``summary.md``, and
+the table into benchmarks/README.md (the ``obstacles`` block; not with ``--no-readme``).
 """
 
 from __future__ import annotations
@@ -35,6 +37,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from _readme import write_readme_section
 
 from snds.data import load_demonstrations, load_lasa
 from snds.io import load_model, to_jsonable
@@ -142,6 +145,7 @@ def main() -> None:
     parser.add_argument("--motions", default=",".join(PAPER8))
     parser.add_argument("--rollouts", type=int, default=1000)
     parser.add_argument("--no-3d", action="store_true", help="skip the 3-D task")
+    parser.add_argument("--no-readme", action="store_true", help="leave benchmarks/README.md")
     args = parser.parse_args()
     torch.set_num_threads(1)
     OUT.mkdir(parents=True, exist_ok=True)
@@ -167,6 +171,8 @@ def main() -> None:
     (OUT / "summary.md").write_text(markdown(rows))
     print(markdown(rows))
     print(f"total {time.perf_counter() - started:.0f} s wall")
+    if not args.no_readme:
+        write_readme_section("obstacles", markdown(rows).rstrip())
 
 
 if __name__ == "__main__":

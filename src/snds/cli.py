@@ -623,7 +623,9 @@ def _evaluate_obstacles(args: argparse.Namespace, policy: Policy, demos: Demonst
     if not args.quiet:
         r, d = report.random, report.demos
         print(
-            f"{args.model / 'obstacles.json'}: {len(scene.bodies)} obstacles; random free "
+            f"{args.model / 'obstacles.json'}: {len(scene.obstacles)} obstacles"
+            + (" and a workspace" if scene.workspace is not None else "")
+            + "; random free "
             f"starts: {r.reached} of {r.starts} reached, {r.stalled} stalled, {r.penetrated} "
             f"penetrated, min clearance {r.min_clearance:.4g} (margin {r.margin:.4g}); demo "
             f"starts: {d.reached} of {d.starts} reached, {d.penetrated} penetrated; "
