@@ -14,7 +14,7 @@ import sys
 
 import pytest
 
-from snds import benchmark
+from snds import benchmark, stability
 from snds.benchmark import MOTION_GROUPS, Task, resolve_methods, resolve_motions, run_sweep
 from snds.cli import main
 from snds.data import LASA_NAMES
@@ -144,7 +144,8 @@ def test_cli_records_the_stability_check_size(tmp_path, monkeypatch):
     args = ["--motions", "Line", "--methods", "snds", "--seeds", "1", "--jobs", "1"]
     code = main(["--quiet", "benchmark", *args, "--rollouts", "7", "--out", str(tmp_path)])
     assert code == 2
-    assert seen == [benchmark.SweepSettings(rollouts=7, samples=100_000)]
+    # the decrease check keeps the library's default size
+    assert seen == [benchmark.SweepSettings(rollouts=7, samples=stability.SAMPLES)]
     assert json.loads((tmp_path / "sweep.json").read_text())["rollouts"] == 7
     with pytest.raises(SNDSError, match="rollouts"):
         benchmark.SweepSettings(rollouts=0)
