@@ -88,7 +88,9 @@ def trained() -> tuple[SDSEFPolicy, Demonstrations, Split]:
     demos = warped_demos()
     split = split_samples(demos, test_fraction=0.2, seed=0)
     config = SDSEFConfig(layers=6, features=64, max_log_scale=0.0)
-    method = SDSEF(policy_config=config, train_config=TrainConfig(steps=600, batch_size=256))
+    method = SDSEF(
+        policy_config=config, train_config=TrainConfig(steps=600, batch_size=256, lr=1e-2)
+    )
     fitted = method.fit(demos, split, seed=0)
     assert fitted.seconds > 0 and fitted.record["train_result"]["steps"] == 600
     return fitted.policy, demos, split
