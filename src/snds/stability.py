@@ -382,7 +382,10 @@ def _roll_out_and_settle(
     it is settled and no longer integrated, so the check costs the time rollouts take to
     arrive. A policy without a Lyapunov function integrates to the horizon.
 
-    States are recorded at the start and every ``every`` steps (``visited``); ``shortened``
+    A rollout takes at most horizon / dt steps, as many as fixed steps of dt would (a step the
+    guard shortens counts as one), so a field the guard must shorten everywhere costs no more
+    than it did with fixed steps. States are recorded at the start and every ``every`` steps
+    (``visited``); ``shortened``
     marks the rollouts at one of whose recorded states plain Euler at the data's step ``dt``
     would not have met the guard's condition.
     """
@@ -403,8 +406,11 @@ def _roll_out_and_settle(
         value = lyapunov(x)
     velocity = policy(x)
     arrival[(x - target).norm(dim=-1) > tolerance] = float("nan")
+    # The budget of fixed steps at dt: steps the guard shortens still count as steps, so a
+    # field so stiff that the guard shrinks every step ends after as many steps as before.
+    budget = int(np.ceil(horizon / dt))
     steps = 0
-    while len(active):
+    while len(active) and steps < budget:
         xa, va, ha = x[active], velocity[active], h[active]
         if steps % every == 0:
             visited.append(xa.clone())
