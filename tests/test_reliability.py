@@ -221,8 +221,9 @@ def test_a_checkpoint_of_other_settings_or_data_is_refused(task, tmp_path, monke
     demos, split, config = task
     checkpoint = tmp_path / CHECKPOINT
     interrupted_fit(make_policy(demos, SMALL), demos, split, config, checkpoint, monkeypatch, 15)
-    other = TrainConfig(**{**config.to_dict(), "lr": 0.02})
-    with pytest.raises(CheckpointError, match=r"other train settings \(train.lr: 0.01 -> 0.02\)"):
+    other = TrainConfig(**{**config.to_dict(), "lr": 2 * config.lr})
+    changed = rf"other train settings \(train.lr: {config.lr} -> {2 * config.lr}\)"
+    with pytest.raises(CheckpointError, match=changed):
         fit(make_policy(demos, SMALL), demos, split, other, progress=False, checkpoint=checkpoint)
     with pytest.raises(CheckpointError, match="other training data"):
         fit(
