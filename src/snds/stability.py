@@ -382,10 +382,10 @@ def _roll_out_and_settle(
     it is settled and no longer integrated, so the check costs the time rollouts take to
     arrive. A policy without a Lyapunov function integrates to the horizon.
 
-    A rollout takes at most horizon / dt steps, as many as fixed steps of dt would (a step the
-    guard shortens counts as one), so a field the guard must shorten everywhere costs no more
-    than it did with fixed steps. States are recorded at the start and every ``every`` steps
-    (``visited``); ``shortened``
+    A rollout takes at most horizon / dt accepted steps, as many as fixed steps of dt would
+    (a step the guard shortens counts as one; a step rejected for its error does not), so a
+    field the guard must shorten everywhere costs no more than it did with fixed steps.
+    States are recorded at the start and every ``every`` steps (``visited``); ``shortened``
     marks the rollouts at one of whose recorded states plain Euler at the data's step ``dt``
     would not have met the guard's condition.
     """
@@ -409,8 +409,9 @@ def _roll_out_and_settle(
     # The budget of fixed steps at dt: steps the guard shortens still count as steps, so a
     # field so stiff that the guard shrinks every step ends after as many steps as before.
     budget = int(np.ceil(horizon / dt))
+    taken = torch.zeros(count, dtype=torch.long, device=x.device)
     steps = 0
-    while len(active) and steps < budget:
+    while len(active):
         xa, va, ha = x[active], velocity[active], h[active]
         if steps % every == 0:
             visited.append(xa.clone())
@@ -445,6 +446,7 @@ def _roll_out_and_settle(
         done = active[accept]
         x[done], velocity[done] = candidate[accept], v_new[accept]
         time[done] = time[done] + ha[accept]
+        taken[done] += 1
         if value is not None:
             value[done] = new[accept]
         outside = (x[done] - target).norm(dim=-1) > tolerance
@@ -452,7 +454,7 @@ def _roll_out_and_settle(
         entered = done[~outside & arrival[done].isnan()]
         arrival[entered] = time[entered]
         steps += 1
-        finished = time[active] >= horizon * (1 - 1e-12)
+        finished = (time[active] >= horizon * (1 - 1e-12)) | (taken[active] >= budget)
         if level is not None:
             finished = finished | (value[active] < level)
         active = active[~finished]
