@@ -29,7 +29,7 @@ from snds.app.headless import available, launch  # noqa: E402
 
 #: The page's query: tiny training settings (``SNDS_APP_QUERY=""`` takes snds train's own
 #: defaults, as for the README's pictures).
-QUERY = os.environ.get("SNDS_APP_QUERY", "steps=30&rollouts=10&samples=200")
+QUERY = os.environ.get("SNDS_APP_QUERY", "steps=300&rollouts=10&samples=200")
 
 pytestmark = pytest.mark.skipif(
     not available(),
