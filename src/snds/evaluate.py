@@ -49,7 +49,8 @@ def reproduce(policy: Policy, demos: Demonstrations, indices: list[int]) -> list
     if not indices:
         return []
     device = getattr(policy, "center", torch.empty(0)).device
-    steps = [len(path_reference(demos[i])) - 1 for i in indices]
+    # The length of each path_reference, without resampling the demonstration to find it.
+    steps = [min(len(demos[i].times), MAX_PATH_SAMPLES) - 1 for i in indices]
     durations = [demos[i].duration / k for i, k in zip(indices, steps)]
     dt = torch.tensor(durations, dtype=torch.float64, device=device)
     starts = np.stack([demos[i].positions[0] for i in indices])
