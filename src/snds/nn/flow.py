@@ -15,6 +15,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
+from snds.nn import fused
+
 
 @dataclass
 class LayerCache:
@@ -97,9 +99,7 @@ class RFFCoupling(nn.Module):
         # put a float64 export of a warped policy 1e-3 (relative) off the library.
         self.amplitude = math.sqrt(2.0 / features)
         self.register_buffer("columns", columns, persistent=False)
-        self.register_buffer(
-            "scaled_columns", columns * self.amplitude, persistent=False
-        )
+        self.register_buffer("scaled_columns", columns * self.amplitude, persistent=False)
         self.dim = dim
         self.max_log_scale = max_log_scale
         self.affine = max_log_scale > 0
@@ -117,10 +117,21 @@ class RFFCoupling(nn.Module):
         (B, n; None if additive) and the cache's angles and weights."""
         # Masking W's columns (not the (B, n) outputs) zeroes s and t on x_a at the cost of
         # one small product per call, and those columns then get no gradient.
-        weight = self.weight * self.scaled_columns
         angles = torch.addmm(self.phases, x, self.frequencies)
-        raw = torch.addmm(self.bias * self.columns, torch.cos(angles), weight)
-        cache = LayerCache(None, angles, None, None, weight)
+        if fused.active():
+            # Training: W in the (k, m) layout, used through its transposed view. A product
+            # (B, m) @ (m, k) with k = n or 2n, a handful of columns, is several times slower
+            # on the CPU with a row-major (m, k) operand than with a column-major one, in the
+            # forward and the backward pass (docs/design.md); and sin is needed anyway by the
+            # Jacobian products, so sin and cos come from one pass.
+            weight = (self.weight.T * self.scaled_columns.unsqueeze(-1)).contiguous().T
+            sines, cosines = fused.sincos(angles)
+            cache = LayerCache(None, angles, None, None, weight, sines)
+        else:
+            weight = self.weight * self.scaled_columns
+            cosines = torch.cos(angles)
+            cache = LayerCache(None, angles, None, None, weight)
+        raw = torch.addmm(self.bias * self.columns, cosines, weight)
         if not self.affine:
             return None, raw, None, cache
         squashed = torch.tanh(raw[:, : self.dim] / self.max_log_scale)

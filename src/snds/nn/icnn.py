@@ -6,6 +6,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from snds.nn import fused
+
 
 def _softplus(u: Tensor) -> tuple[Tensor, Tensor]:
     return F.softplus(u), torch.sigmoid(u)
@@ -79,10 +81,26 @@ class ICNN(nn.Module):
         """
         act = CONVEX_ACTIVATIONS[self.activation]
         weights = self.weights()
+        # The skips' weights A_k (h, n) as the products use them. In training (autograd on),
+        # A_k^T is copied to row-major (n, h) and A_k is its column-major view: the products
+        # with n columns, (B, h) @ (h, n) here and (h, B) @ (B, n) in their backward pass,
+        # are several times slower on the CPU otherwise (docs/design.md). The same values.
+        if fused.active():
+            skips_t = [skip.weight.T.contiguous() for skip in self.skips]
+            skips = [a.T for a in skips_t]
+        else:
+            skips = [skip.weight for skip in self.skips]
+            skips_t = [a.T for a in skips]
         slopes = []
         z = None
         for k, skip in enumerate(self.skips):
-            u = skip(x) if z is None else skip(x) + z @ weights[k - 1].T
+            u = (
+                torch.addmm(skip.bias, x, skips_t[k])
+                if x.dim() == 2
+                else x @ skips_t[k] + skip.bias
+            )
+            if z is not None:
+                u = u + z @ weights[k - 1].T
             z, slope = act(u)
             slopes.append(slope)
         out = F.softplus(self.raw_out)
@@ -93,7 +111,7 @@ class ICNN(nn.Module):
         e = out
         for k in range(len(self.skips) - 1, -1, -1):
             delta = e * slopes[k]
-            grad = delta @ self.skips[k].weight + grad
+            grad = delta @ skips[k] + grad
             if k > 0:
                 e = delta @ weights[k - 1]
         return value, grad
