@@ -101,6 +101,7 @@ def run_job(argv: list[str], send: Callable[[dict], None]) -> None:
     import torch
 
     import snds.cli
+    import snds.cli.train
     import snds.train
     from snds.errors import SNDSError
 
@@ -111,14 +112,15 @@ def run_job(argv: list[str], send: Callable[[dict], None]) -> None:
 
     _ReportingBar.send = staticmethod(report)
     snds.train.tqdm = _ReportingBar
-    evaluate = snds.cli.evaluate
+    # snds train evaluates through its module's `evaluate` attribute, which is wrapped here.
+    evaluate = snds.cli.train.evaluate
 
     def saved_then_evaluate(*args: Any, **kwargs: Any) -> dict:
         # snds train saves the model, then evaluates it: the page can draw the field now.
         report({"event": "saved"})
         return evaluate(*args, **kwargs)
 
-    snds.cli.evaluate = saved_then_evaluate
+    snds.cli.train.evaluate = saved_then_evaluate
     try:
         args = snds.cli._build_parser().parse_args(argv)
         torch.set_num_threads(args.threads)

@@ -1,0 +1,60 @@
+"""The ``snds`` command line: a thin layer that builds configs and calls the library.
+
+One module per subcommand (:mod:`snds.cli.train`, :mod:`~snds.cli.evaluate`,
+:mod:`~snds.cli.plot`, :mod:`~snds.cli.benchmark`, :mod:`~snds.cli.simulate`,
+:mod:`~snds.cli.export`, :mod:`~snds.cli.app`), each with ``register(commands)``, which adds
+its sub-parser, and ``run(args) -> int``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Callable, Sequence
+
+import torch
+
+from snds.cli import app, benchmark, evaluate, export, plot, simulate, train
+from snds.cli.train import ARCHITECTURES, _policy_config
+from snds.errors import SNDSError
+
+__all__ = ["ARCHITECTURES", "_build_parser", "_policy_config", "main"]
+
+#: The subcommands, in the order ``snds --help`` lists them.
+COMMANDS = (train, evaluate, plot, benchmark, simulate, export, app)
+
+
+def _build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="snds", description="Globally stable neural motion policies from demonstrations."
+    )
+    parser.add_argument("--quiet", action="store_true", help="no progress bars or summaries")
+    parser.add_argument(
+        "--threads",
+        type=int,
+        default=1,
+        help="torch CPU threads (default 1: the networks are small, and one thread is "
+        "faster than two on them, more so on a busy machine)",
+    )
+    commands = parser.add_subparsers(dest="command", required=True)
+    for command in COMMANDS:
+        command.register(commands)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Runs the command line; returns the exit code (2 for bad input)."""
+    parser = _build_parser()
+    args = parser.parse_args(argv)
+    if args.threads < 1:
+        parser.error("--threads must be >= 1")
+    torch.set_num_threads(args.threads)
+    run: Callable[[argparse.Namespace], int] = args.run
+    try:
+        return run(args)
+    except SNDSError as error:
+        print(f"snds: error: {error}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("snds: interrupted", file=sys.stderr)
+        return 130

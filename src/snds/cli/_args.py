@@ -1,0 +1,85 @@
+"""Argument types and argument groups that several subcommands share."""
+
+from __future__ import annotations
+
+import argparse
+import math
+from pathlib import Path
+
+from snds.stability import ROLLOUTS, SAMPLES
+
+
+def _index_list(text: str) -> list[int]:
+    try:
+        return [int(part) for part in text.split(",") if part.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected comma-separated indices, got {text!r}"
+        ) from None
+
+
+def _demo_choice(text: str) -> int | list[int]:
+    return _index_list(text) if "," in text else _index_list(text)[0]
+
+
+def _end_spread(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not (math.isfinite(value) and value >= 0):
+        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}")
+    return value
+
+
+def _data_arguments(parser: argparse.ArgumentParser, *, required: bool) -> None:
+    source = parser.add_mutually_exclusive_group(required=required)
+    source.add_argument("--motion", help="a LASA handwriting motion, e.g. Sine")
+    source.add_argument("--data", type=Path, help="demonstrations: .mat, .csv or .npz")
+    parser.add_argument(
+        "--demos",
+        type=_demo_choice,
+        default=None,
+        help="K: the first K demonstrations; I,J,...: these demonstrations (0-based)",
+    )
+    parser.add_argument(
+        "--max-end-spread",
+        type=_end_spread,
+        default=None,
+        help="largest distance of a file's demonstration end from their common target, in "
+        "extents (default 0.25; a model records the value it was trained with)",
+    )
+
+
+def _check_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--rollouts", type=int, default=ROLLOUTS, help="random starts of the stability check"
+    )
+    parser.add_argument(
+        "--samples", type=int, default=SAMPLES, help="states of the decrease-condition check"
+    )
+    parser.add_argument(
+        "--grid", action="store_true", help="stability rollouts from a grid, not random starts"
+    )
+
+
+def _obstacle_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--obstacle",
+        action="append",
+        default=[],
+        metavar="SPEC",
+        help="an obstacle (repeatable): sphere:CX,CY[,CZ],R, ellipsoid:CX,CY[,CZ],A1,A2[,A3] "
+        "(semi-axes) or box:CX,CY[,CZ],H1,H2[,H3] (half-widths), then options margin=M, "
+        "influence=D, angle=DEG (2-D) or angles=A/B/C (3-D), velocity=V1/V2[/V3]; "
+        "docs/obstacles.md",
+    )
+    parser.add_argument(
+        "--workspace",
+        default=None,
+        metavar="SPEC",
+        help="box:CX,CY[,CZ],H1,H2[,H3][,margin=M]: the box the motion must stay in",
+    )
+    parser.add_argument(
+        "--scene", type=Path, default=None, help="obstacles and workspace from a .json/.yaml file"
+    )

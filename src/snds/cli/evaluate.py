@@ -1,0 +1,103 @@
+"""``snds evaluate``: the accuracy and the stability check of a saved model."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from snds.cli._args import _check_arguments, _data_arguments, _obstacle_arguments
+from snds.cli._common import (
+    _check_sizes,
+    _is_pose_model,
+    _make_split,
+    _model_and_data,
+    _pose_model_and_data,
+    _scene,
+    _summarise,
+    _summarise_se3,
+)
+from snds.data import Demonstrations
+from snds.errors import ConfigError
+from snds.evaluate import evaluate
+from snds.io import to_jsonable, write_json
+from snds.policy import Policy
+
+__all__ = ["register", "run"]
+
+
+def register(commands: argparse._SubParsersAction) -> None:
+    """Adds ``snds evaluate`` to the subcommands."""
+    parser = commands.add_parser("evaluate", help="evaluate a trained model")
+    parser.add_argument("model", type=Path, help="model directory")
+    _data_arguments(parser, required=False)
+    parser.add_argument("--seed", type=int, default=0, help="seed of the stability check")
+    _check_arguments(parser)
+    _obstacle_arguments(parser)
+    parser.set_defaults(run=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    scene = _scene(args)
+    _check_sizes(args)
+    if _is_pose_model(args.model):
+        if scene is not None:
+            raise ConfigError("obstacles: snds evaluate takes position models (simulate: both)")
+        return _evaluate_se3(args)
+    policy, description, demos = _model_and_data(args)
+    if scene is not None:
+        return _evaluate_obstacles(args, policy, demos, scene)
+    metrics = evaluate(
+        policy,
+        demos,
+        _make_split(demos, description.get("split", {})),
+        seed=args.seed,
+        rollouts=args.rollouts,
+        grid=args.grid,
+        samples=args.samples,
+    )
+    metrics["train_seconds"] = description.get("train_result", {}).get("seconds")
+    write_json(args.model / "metrics.json", to_jsonable(metrics))
+    if not args.quiet:
+        _summarise(args.model, metrics)
+    return 0
+
+
+def _evaluate_obstacles(args: argparse.Namespace, policy: Policy, demos: Demonstrations, scene):
+    """``snds evaluate`` with obstacles: the stability report under them, ``obstacles.json``."""
+    from snds.obstacles import check_obstacles
+
+    scene.check(demos.dim, demos.target)
+    report = check_obstacles(policy, demos, scene, rollouts=args.rollouts, seed=args.seed)
+    write_json(args.model / "obstacles.json", to_jsonable(report.to_dict()))
+    if not args.quiet:
+        r, d = report.random, report.demos
+        print(
+            f"{args.model / 'obstacles.json'}: {len(scene.obstacles)} obstacles"
+            + (" and a workspace" if scene.workspace is not None else "")
+            + "; random free "
+            f"starts: {r.reached} of {r.starts} reached, {r.stalled} stalled, {r.penetrated} "
+            f"penetrated, min clearance {r.min_clearance:.4g} (margin {r.margin:.4g}); demo "
+            f"starts: {d.reached} of {d.starts} reached, {d.penetrated} penetrated; "
+            f"{report.wall_seconds:.1f} s"
+        )
+    return 0
+
+
+def _evaluate_se3(args: argparse.Namespace) -> int:
+    from snds.se3 import evaluate_pose, tangent_demonstrations
+
+    policy, description, poses = _pose_model_and_data(args)
+    tangent = tangent_demonstrations(
+        poses,
+        position_scale=policy.config.position_scale,
+        rotation_scale=policy.config.rotation_scale,
+    )
+    split = _make_split(tangent, description.get("split", {}))
+    metrics = evaluate_pose(
+        policy, poses, split, seed=args.seed, rollouts=args.rollouts, samples=args.samples
+    )
+    metrics["train_seconds"] = description.get("train_result", {}).get("seconds")
+    write_json(args.model / "metrics.json", to_jsonable(metrics))
+    if not args.quiet:
+        _summarise_se3(args.model, metrics)
+    return 0

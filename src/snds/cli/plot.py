@@ -1,0 +1,62 @@
+"""``snds plot``: the plots of a saved model."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from snds.cli._args import _data_arguments, _obstacle_arguments
+from snds.cli._common import (
+    _is_pose_model,
+    _model_and_data,
+    _pose_model_and_data,
+    _scene,
+    _write_plots,
+)
+from snds.errors import ConfigError
+
+__all__ = ["register", "run"]
+
+
+def register(commands: argparse._SubParsersAction) -> None:
+    """Adds ``snds plot`` to the subcommands."""
+    parser = commands.add_parser("plot", help="plot a trained model")
+    parser.add_argument("model", type=Path, help="model directory")
+    _data_arguments(parser, required=False)
+    parser.add_argument("--out", type=Path, default=None, help="folder of the PNGs")
+    _obstacle_arguments(parser)
+    parser.set_defaults(run=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    scene = _scene(args)
+    if _is_pose_model(args.model):
+        if scene is not None:
+            raise ConfigError("obstacles: snds plot takes position models (simulate: both)")
+        return _plot_se3(args)
+    policy, _, demos = _model_and_data(args)
+    if scene is not None:
+        scene.check(demos.dim, demos.target)
+    history = None
+    loss_file = args.model / "loss.json"
+    if loss_file.is_file():
+        history = json.loads(loss_file.read_text()).get("history")
+    paths = _write_plots(policy, demos, args.out or args.model, history, scene=scene)
+    if not args.quiet:
+        for path in paths:
+            print(path)
+    return 0
+
+
+def _plot_se3(args: argparse.Namespace) -> int:
+    from snds.se3 import plot_pose_policy
+
+    policy, _, poses = _pose_model_and_data(args)
+    loss_file = args.model / "loss.json"
+    history = json.loads(loss_file.read_text()).get("history") if loss_file.is_file() else None
+    paths = plot_pose_policy(policy, poses, args.out or args.model, history=history)
+    if not args.quiet:
+        for path in paths:
+            print(path)
+    return 0

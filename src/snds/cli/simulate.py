@@ -1,0 +1,147 @@
+"""``snds simulate``: drives a simulated arm with a saved model (:mod:`snds.sim`)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from snds.cli._args import _data_arguments, _obstacle_arguments
+from snds.cli._common import _is_pose_model, _model_and_data, _pose_model_and_data, _scene, _source
+from snds.errors import SNDSError
+from snds.io import to_jsonable, write_json
+
+__all__ = ["register", "run"]
+
+
+def register(commands: argparse._SubParsersAction) -> None:
+    """Adds ``snds simulate`` to the subcommands."""
+    from snds.sim import ROBOTS, SimConfig
+
+    parser = commands.add_parser(
+        "simulate", help="drive a simulated robot arm with a model (PyBullet, headless)"
+    )
+    parser.add_argument("model", type=Path, help="model directory")
+    _data_arguments(parser, required=False)
+    parser.add_argument("--robot", choices=list(ROBOTS), default=SimConfig.robot)
+    parser.add_argument(
+        "--push",
+        type=_push,
+        default=None,
+        help="STEP,DX,DY,DZ: displace the end effector by (DX, DY, DZ) metres at control step STEP",
+    )
+    parser.add_argument(
+        "--scale",
+        type=float,
+        default=None,
+        help="metres per unit of the task's positions (default: fit the motion into the "
+        "robot's reach)",
+    )
+    parser.add_argument(
+        "--start-demo",
+        type=int,
+        default=0,
+        help="start at this demonstration's first state (a pose model: its first pose)",
+    )
+    parser.add_argument(
+        "--control-rate", type=float, default=SimConfig.control_rate, help="control loop, Hz"
+    )
+    parser.add_argument(
+        "--time-limit", type=float, default=SimConfig.time_limit, help="seconds of simulation"
+    )
+    parser.add_argument(
+        "--tolerance",
+        type=float,
+        default=SimConfig.tolerance,
+        help="distance to the target (m) at which the run stops",
+    )
+    parser.add_argument(
+        "--angle-tolerance",
+        type=float,
+        default=SimConfig.angle_tolerance,
+        help="angle to the target orientation (rad) within which a pose model's run stops "
+        "(with the distance within --tolerance)",
+    )
+    parser.add_argument(
+        "--frames", type=int, default=6, help="rendered frames in frames.png (0: none)"
+    )
+    parser.add_argument(
+        "--out", type=Path, default=None, help="results folder (default: MODEL/sim-ROBOT)"
+    )
+    _obstacle_arguments(parser)
+    parser.set_defaults(run=run)
+
+
+def _push(text: str):
+    from snds.sim import Push
+
+    parts = text.split(",")
+    try:
+        step, *displacement = (float(part) for part in parts)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected STEP,DX,DY,DZ (a step and metres), got {text!r}"
+        ) from None
+    if len(parts) != 4 or step != int(step) or step < 0:
+        raise argparse.ArgumentTypeError(
+            f"expected STEP,DX,DY,DZ with an integer step >= 0, got {text!r}"
+        )
+    return Push(step=int(step), displacement=tuple(displacement))
+
+
+def run(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from snds.sim import SimConfig, simulate
+    from snds.sim.plots import plot_frames, plot_path, render_frames
+
+    scene = _scene(args)
+    pose = _is_pose_model(args.model)
+    policy, _, demos = _pose_model_and_data(args) if pose else _model_and_data(args)
+    if not 0 <= args.start_demo < len(demos):
+        raise SNDSError(f"--start-demo {args.start_demo}: there are {len(demos)} demonstrations")
+    if scene is not None:
+        scene.check(3 if pose else demos.dim, demos.target_position if pose else demos.target)
+    config = SimConfig(
+        robot=args.robot,
+        scale=args.scale,
+        control_rate=args.control_rate,
+        time_limit=args.time_limit,
+        tolerance=args.tolerance,
+        angle_tolerance=args.angle_tolerance,
+        push=args.push,
+        obstacles=scene,
+    )
+    first = demos[args.start_demo]
+    # A pose model starts from a pose: position and quaternion, 7 numbers.
+    start = np.r_[first.positions[0], first.orientations[0]] if pose else first.positions[0]
+    result = simulate(policy, start, config)
+    out = args.out or args.model / f"sim-{config.robot}"
+    record = {
+        "model": str(Path(args.model).resolve()),
+        "data": _source(args) if args.motion or args.data else None,
+        "start_demo": args.start_demo,
+        **result.to_dict(),
+    }
+    write_json(out / "sim.json", to_jsonable(record))
+    paths = [plot_path(result, demos, out / "path.png")]
+    if args.frames > 0:
+        frames, steps = render_frames(result, demos, count=args.frames)
+        paths.append(plot_frames(result, frames, steps, out / "frames.png"))
+    if not args.quiet:
+        outcome = (
+            f"reached the target in {result.times[-1]:.2f} s"
+            if result.reached
+            else f"did not reach the target in {result.times[-1]:.2f} s"
+        )
+        line = f"{out}: {outcome}, final error {1000 * result.final_error:.2f} mm"
+        if result.drives_orientation:
+            line += f" and {result.final_orientation_error:.4f} rad"
+        if result.push_time is not None:
+            recovery = (
+                "never recovered"
+                if result.recovery_time is None
+                else f"recovered in {result.recovery_time:.2f} s"
+            )
+            line += f"; pushed at {result.push_time:.2f} s, {recovery}"
+        print(line)
+    return 0

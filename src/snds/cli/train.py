@@ -1,0 +1,303 @@
+"""``snds train``: trains a policy, saves the run folder, evaluates the model.
+
+The evaluation after training is this module's :func:`evaluate` attribute, looked up at each
+call, so that a caller (the page's worker, :mod:`snds.app.worker`) can wrap it to learn when
+the model has been saved.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import dataclasses
+import sys
+from pathlib import Path
+
+from snds.cli._args import _check_arguments, _data_arguments, _index_list
+from snds.cli._common import (
+    _check_sizes,
+    _is_pose_file,
+    _load_data,
+    _make_split,
+    _pose_data,
+    _source,
+    _summarise,
+    _summarise_se3,
+    _write_plots,
+)
+from snds.data import Normalization
+from snds.errors import ConfigError
+from snds.evaluate import evaluate
+from snds.io import remove_temporaries, save_model, to_jsonable, write_json
+from snds.policy import DEFAULT_WARP_LAYERS, Policy, PolicyConfig, StablePolicy
+from snds.train import CHECKPOINT, TrainConfig, TrainResult, fit
+
+__all__ = ["evaluate", "register", "run"]
+
+#: ``snds train --architecture`` choices: overrides of :class:`PolicyConfig`'s network sizes.
+#: "compact" is for controllers that evaluate large batches (measured in benchmarks/README.md).
+ARCHITECTURES: dict[str, dict[str, object]] = {
+    "default": {},
+    "compact": {"hidden": (64, 64), "fourier_features": 64},
+}
+
+
+#: ``snds train --shape-weight`` for SE(3) pose models (TrainConfig.shape_weight). Without it
+#: a pose policy's 6-D V grows ill-conditioned off the one-curve data and the field stiff:
+#: on Messy Snake lifted to SE(3), 0 of 1,000 random poses arrived within the horizon; with
+#: it, 1,000 of 1,000 (benchmarks/README.md, "Higher dimensions and SE(3)").
+POSE_SHAPE_WEIGHT = 0.01
+#: ``snds train --position-noise`` for SE(3) pose models. The positions' default 0.0015 left
+#: Messy Snake lifted to SE(3) converging from 0 of 1,000 random poses (1,000 without it).
+POSE_POSITION_NOISE = 0.0
+
+
+def register(commands: argparse._SubParsersAction) -> None:
+    """Adds ``snds train`` to the subcommands."""
+    parser = commands.add_parser("train", help="train a stable policy and evaluate it")
+    _data_arguments(parser, required=True)
+    parser.add_argument("--seed", type=int, default=0, help="seed of weights and split")
+    parser.add_argument("--out", type=Path, default=None, help="model directory")
+    parser.add_argument("--plot", action="store_true", help="also write the plots")
+    parser.add_argument("--test-fraction", type=float, default=0.2, help="held-out samples")
+    parser.add_argument(
+        "--test-demos",
+        type=_index_list,
+        default=None,
+        help="hold out these whole demonstrations (I,J,...) instead of random samples",
+    )
+    parser.add_argument("--steps", type=int, default=TrainConfig.steps, help="optimiser steps")
+    parser.add_argument("--window", type=int, default=TrainConfig.window, help="Euler window Nw")
+    parser.add_argument(
+        "--velocity-loss", choices=["mse", "srvf"], default=TrainConfig.velocity_shape
+    )
+    parser.add_argument(
+        "--nominal-weight",
+        type=float,
+        default=TrainConfig.nominal_weight,
+        help="weight of the velocity term on the nominal field before the projection, which "
+        "keeps a fit from stalling where the projection hides f's gradient (0: the paper's "
+        "loss)",
+    )
+    parser.add_argument(
+        "--position-noise",
+        type=float,
+        default=None,
+        help="standard deviation of noise added to the training states (model coordinates, "
+        "the data span about [-1, 1]), for demonstrations that run close together at "
+        f"different speeds (default {TrainConfig.position_noise:g} for positions, "
+        f"{POSE_POSITION_NOISE:g} for SE(3) pose models; 0: off)",
+    )
+    parser.add_argument(
+        "--shape-weight",
+        type=float,
+        default=None,
+        help="weight of the penalty that keeps V's sublevel sets round off the data, against "
+        f"stiff fields (default {POSE_SHAPE_WEIGHT:g} for SE(3) pose models, "
+        f"{TrainConfig.shape_weight:g} (off) for positions)",
+    )
+    parser.add_argument(
+        "--decay-rate",
+        type=float,
+        default=PolicyConfig.decay_rate,
+        help="rho in a(x) = rho V(x); 0 (with --decay-far 0 --decay-near 0) is the paper's "
+        "relaxed mode (dV/dt <= 0 only)",
+    )
+    parser.add_argument(
+        "--decay-far",
+        type=float,
+        default=PolicyConfig.decay_far,
+        help="extra decay rate per extent beyond the demonstrations' extent (0: off)",
+    )
+    parser.add_argument(
+        "--decay-near",
+        type=float,
+        default=PolicyConfig.decay_near,
+        help="extra decay rate at the target, fading out at 0.2 of the extent (0: off)",
+    )
+    parser.add_argument(
+        "--warp-layers",
+        type=int,
+        default=PolicyConfig.warp_layers,
+        help="coupling layers of a learned warp inside V, for demonstrations that wind back "
+        f"and forth (default {DEFAULT_WARP_LAYERS} for positions of dimension >= 2, 0 in 1-D "
+        "and for SE(3) poses; 0: off, V convex, ~3x faster training, see "
+        "benchmarks/README.md)",
+    )
+    parser.add_argument(
+        "--warp-weight",
+        type=float,
+        default=TrainConfig.warp_weight,
+        help="weight of the penalty that keeps the warp's Jacobian near the identity, against "
+        f"stiff fields (default {TrainConfig.warp_weight:g}; 0: off)",
+    )
+    parser.add_argument("--unconstrained", action="store_true", help="behavioural cloning")
+    parser.add_argument(
+        "--architecture",
+        choices=list(ARCHITECTURES),
+        default="default",
+        help="network sizes: default, or compact (hidden 64-64, 64 Fourier features: "
+        "faster batches; measured in benchmarks/README.md)",
+    )
+    parser.add_argument("--device", default="cpu", help="torch device (cpu, cuda, ...)")
+    parser.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue an interrupted run from OUT/checkpoint.safetensors (same arguments)",
+    )
+    parser.add_argument(
+        "--checkpoint-every", type=int, default=200, help="steps between checkpoints"
+    )
+    _check_arguments(parser)
+    parser.add_argument(
+        "--se3",
+        action="store_true",
+        help="learn a pose policy (position + orientation); automatic for pose files (CSV "
+        "with columns qx,qy,qz,qw, NPZ with 'quat'); position data get synthetic orientations",
+    )
+    parser.set_defaults(run=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    _check_sizes(args)
+    if args.se3 or (args.data is not None and _is_pose_file(args.data)):
+        if args.resume:
+            # Refused rather than ignored: a user must not believe a pose run resumed.
+            raise ConfigError("--resume is not available for SE(3) training yet")
+        return _train_se3(args)
+    demos = _load_data(args.motion, args.data, args.demos, args.max_end_spread)
+    out = args.out or Path("runs") / (demos.name or Path(str(args.data)).stem)
+    split_record, train_config = _train_settings(args)
+    split = _make_split(demos, split_record)
+    policy = StablePolicy(
+        dim=demos.dim,
+        normalization=Normalization.fit(demos),
+        config=_policy_config(args),
+        seed=args.seed,
+    )
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"--out {out}: is a file, not a directory")
+    remove_temporaries(out)
+    checkpoint = out / CHECKPOINT
+    if not args.resume:
+        checkpoint.unlink(missing_ok=True)
+    elif not checkpoint.is_file() and not args.quiet:
+        print(f"snds: no checkpoint in {out}: training from the start", file=sys.stderr)
+    result = fit(
+        policy,
+        demos,
+        split,
+        train_config,
+        progress=not args.quiet,
+        checkpoint=checkpoint,
+        checkpoint_every=args.checkpoint_every,
+    )
+    _save_run(out, policy, result, data=_source(args), split=split_record, train=train_config)
+    metrics = evaluate(
+        policy,
+        demos,
+        split,
+        seed=args.seed,
+        rollouts=args.rollouts,
+        grid=args.grid,
+        samples=args.samples,
+    )
+    metrics["train_seconds"] = result.seconds
+    write_json(out / "metrics.json", to_jsonable(metrics))
+    if args.plot:
+        _write_plots(policy.to("cpu"), demos, out, result.history)
+    # Only now is the run complete: until here a kill leaves the checkpoint to resume from.
+    checkpoint.unlink(missing_ok=True)
+    if not args.quiet:
+        _summarise(out, metrics)
+    return 0
+
+
+def _train_settings(
+    args: argparse.Namespace,
+    *,
+    shape_weight: float = TrainConfig.shape_weight,
+    position_noise: float = TrainConfig.position_noise,
+) -> tuple[dict, TrainConfig]:
+    """The split record and the optimisation settings of ``snds train``'s arguments;
+    ``shape_weight`` and ``position_noise`` are the defaults of their flags for this kind of
+    model."""
+    split_record = {
+        "test_fraction": args.test_fraction,
+        "seed": args.seed,
+        "test_demos": args.test_demos,
+    }
+    train_config = TrainConfig(
+        steps=args.steps,
+        window=args.window,
+        velocity_shape=args.velocity_loss,
+        nominal_weight=args.nominal_weight,
+        position_noise=position_noise if args.position_noise is None else args.position_noise,
+        shape_weight=shape_weight if args.shape_weight is None else args.shape_weight,
+        warp_weight=args.warp_weight,
+        seed=args.seed,
+        device=args.device,
+    )
+    return split_record, train_config
+
+
+def _save_run(
+    out: Path, policy: Policy, result: TrainResult, *, data: dict, split: dict, train: TrainConfig
+) -> None:
+    """Writes a trained model with the record of how it was trained, and its loss history."""
+    # The file is written from a CPU copy: the policy stays on its device (--device) for the
+    # stability check that follows.
+    if policy.center.device.type != "cpu":
+        policy = copy.deepcopy(policy).to("cpu")
+    # Results of an earlier run must not sit beside the new model if this one is killed.
+    for name in ("metrics.json", "loss.json"):
+        (out / name).unlink(missing_ok=True)
+    record = {
+        "data": data,
+        "split": split,
+        "train": train.to_dict(),
+        "train_result": {k: v for k, v in dataclasses.asdict(result).items() if k != "history"},
+    }
+    save_model(policy, out, extra=record)
+    write_json(out / "loss.json", {"history": result.history})
+
+
+def _policy_config(args: argparse.Namespace) -> PolicyConfig:
+    """The architecture that ``snds train``'s flags ask for, for positions and poses alike."""
+    return PolicyConfig(
+        **ARCHITECTURES[args.architecture],
+        decay_rate=args.decay_rate,
+        decay_far=args.decay_far,
+        decay_near=args.decay_near,
+        warp_layers=args.warp_layers,
+        stable=not args.unconstrained,
+    )
+
+
+def _train_se3(args: argparse.Namespace) -> int:
+    from snds.se3 import evaluate_pose, make_pose_policy
+
+    poses = _pose_data(args.motion, args.data, args.demos, args.seed, args.max_end_spread)
+    out = args.out or Path("runs") / f"{poses.name or Path(str(args.data)).stem}-se3"
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"--out {out}: is a file, not a directory")
+    policy, demos = make_pose_policy(poses, config=_policy_config(args), seed=args.seed)
+    split_record, train_config = _train_settings(
+        args, shape_weight=POSE_SHAPE_WEIGHT, position_noise=POSE_POSITION_NOISE
+    )
+    split = _make_split(demos, split_record)
+    result = fit(policy, demos, split, train_config, progress=not args.quiet)
+    source = {**_source(args), "orientation_seed": args.seed}
+    _save_run(out, policy, result, data=source, split=split_record, train=train_config)
+    metrics = evaluate_pose(
+        policy, poses, split, seed=args.seed, rollouts=args.rollouts, samples=args.samples
+    )
+    metrics["train_seconds"] = result.seconds
+    write_json(out / "metrics.json", to_jsonable(metrics))
+    if args.plot:
+        from snds.se3 import plot_pose_policy
+
+        plot_pose_policy(policy, poses, out, history=result.history)
+    if not args.quiet:
+        _summarise_se3(out, metrics)
+    return 0
