@@ -115,7 +115,9 @@ def test_float64_onnx_of_a_leaky_relu_network(tmp_path: Path) -> None:
     policy = make_policy(shifted_spiral(), config=config, seed=6, dtype=torch.float32).eval()
     path = export.export_onnx(policy, tmp_path / "leaky.onnx", dtype=torch.float64)
     check = export.verify(path, policy, samples=2_000)
-    assert check.passed and check.max_error <= 1e-12
+    # (the fused graph sums in another order than the library: 3e-12 measured, 1000 extents
+    # out, where the Fourier angles reach 1e5 rad)
+    assert check.passed and check.max_error <= 1e-10
 
 
 def test_onnx_runtime_paths_compute_one_function(policy, onnx64, monkeypatch) -> None:
@@ -192,7 +194,8 @@ def test_pt2_round_trip_is_exact_and_pickle_free(tmp_path: Path, dim: int) -> No
     path = export.export_pt2(policy, tmp_path / "policy.pt2", dtype=torch.float64)
     assert export.pickled_entries(path) == []
     check = export.verify(path, policy, samples=2_000)
-    assert check.passed and check.max_error <= 1e-12
+    # (the fused graph sums in another order than the library: 3e-12 measured)
+    assert check.passed and check.max_error <= 1e-10
     # a single state (batch of one) runs through the dynamic batch dimension
     run = export.load_pt2(path)
     x = export.random_states(policy, 1, seed=2)
@@ -429,3 +432,63 @@ def test_a_warped_policy_exports_exactly(tmp_path: Path, fmt: str) -> None:
     # (3e-11 measured: 1000 extents out, the Fourier angles reach 1e5 rad, whose last bit
     # differs between the two runtimes' matrix products)
     assert check.passed and check.max_error <= 1e-9
+
+
+def _default_policy(dim: int = 2):
+    """The default architecture (warped V, 6 coupling layers), its warp and V moved away from
+    their initial values as training would."""
+    demos = shifted_spiral() if dim == 2 else spiral_demos(dim=dim)
+    policy = make_policy(demos, config=PolicyConfig(), seed=2).eval()
+    with torch.no_grad():
+        for p in policy.lyapunov.warp.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    return policy
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_default_policy_exports_as_the_fused_graph(tmp_path: Path, dim: int) -> None:
+    # GIVEN the default architecture, exported in float64 and in float32
+    import onnx
+
+    policy = _default_policy(dim)
+    assert export._fusable(policy)
+    exact = export.export_onnx(policy, tmp_path / "p64.onnx", dtype=torch.float64)
+    rounded = export.export_onnx(policy, tmp_path / "p32.onnx", dtype=torch.float32)
+    # THEN the float64 graph is the library to 1e-9 of the top speed on 4,000 states out to
+    # 1000 extents (rounding of 1e5-rad Fourier angles: about 2e-11 measured)
+    check = export.verify(exact, policy, samples=4_000, seed=3)
+    assert check.passed and check.max_error <= 1e-9
+    # and the float32 graph is no farther from the exact policy than the float32 library
+    # (times ROUNDING_SLACK)
+    check = export.verify(rounded, policy, samples=4_000, seed=3)
+    assert check.passed
+    assert check.max_error_float64 <= export.ROUNDING_SLACK * check.library_error
+    # and it is the fused graph: a third fewer nodes than the library's own code (168)
+    assert len(onnx.load(str(rounded)).graph.node) <= 130
+
+
+@pytest.mark.parametrize("fmt", ["onnx", "pt2"])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_exported_field_is_zero_at_the_target(tmp_path: Path, fmt: str, dtype) -> None:
+    # GIVEN the default policy's export, and the target (off the origin, at (100, -50))
+    policy = _default_policy()
+    write, load = (
+        (export.export_onnx, export.load_onnx)
+        if fmt == "onnx"
+        else (export.export_pt2, export.load_pt2)
+    )
+    run = load(write(policy, tmp_path / f"p.{fmt}", dtype=dtype))
+    target = np.asarray(policy.normalization.center, dtype=np.float64)[None]
+    # THEN V is 0 there, and the exported velocity is exactly 0, in a batch too
+    with torch.no_grad():
+        value, _ = export._copy(policy, torch.float64).lyapunov.value_and_grad(
+            torch.zeros(1, 2, dtype=torch.float64)
+        )
+    assert float(value[0]) == 0.0
+    np.testing.assert_array_equal(run(target), np.zeros((1, 2)))
+    batch = np.concatenate([export.random_states(policy, 7, seed=1), target])
+    assert np.all(run(batch)[-1] == 0.0) and np.all(run(batch)[:-1] != 0.0)
+    # and one extent in 1e6 from it the velocity is of that order (top speed: about 1)
+    near = target + 1e-6 * policy.normalization.length
+    speed = np.linalg.norm(run(near)) / export._top_speed(policy)
+    assert speed < 1e-3
