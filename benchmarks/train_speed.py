@@ -15,8 +15,16 @@ Variants:
 * ``default``: the library as it is.
 * ``reference``: the reference path (``snds.nn.fused.ENABLED = False``): the
   same maths in plain operations, as before the fused path.
+* ``torch-optimizer``: gradient clipping and the Adam step through torch's own
+  ``clip_grad_norm_`` and ``Adam.step`` instead of :func:`snds.train.clip_gradients` and
+  :func:`snds.train.adam_step` (the same arithmetic).
+* ``before``: both of the above: the training step as it was before these changes.
+* ``batch16``: a batch of 16: what a step costs that is not proportional to the batch.
 * ``batch256``, ``penalty8``: the default with ``batch_size=256`` / ``penalty_every=8``.
-* ``warp4``: four coupling layers instead of six.
+* ``warp4``: four coupling layers instead of six; ``warpfeatures32``: 32 random features
+  per coupling layer instead of 64.
+* ``batch256-warpfeatures32``, ``batch256-steps1200``: combinations (the last one's full
+  fit is 1,200 steps).
 * ``compiled`` (with ``--compile``): the step's loss under ``torch.compile``; its first
   call's compile time is reported separately (the FX graph cache under
   ``$TORCHINDUCTOR_CACHE_DIR`` makes a second process faster).
@@ -55,6 +63,31 @@ def _reference() -> Iterator[None]:
         snds.nn.fused.ENABLED = True
 
 
+@contextlib.contextmanager
+def _torch_optimizer() -> Iterator[None]:
+    clip, step = snds.train.clip_gradients, snds.train.adam_step
+
+    def torch_clip(module: torch.nn.Module, max_norm: float) -> torch.Tensor:
+        return torch.nn.utils.clip_grad_norm_(module.parameters(), max_norm, foreach=True)
+
+    def torch_step(optimizer: torch.optim.Adam, lr: float) -> None:
+        for group in optimizer.param_groups:
+            group["lr"] = lr
+        optimizer.step()
+
+    snds.train.clip_gradients, snds.train.adam_step = torch_clip, torch_step
+    try:
+        yield
+    finally:
+        snds.train.clip_gradients, snds.train.adam_step = clip, step
+
+
+@contextlib.contextmanager
+def _before() -> Iterator[None]:
+    with _reference(), _torch_optimizer():
+        yield
+
+
 _COMPILE_SECONDS: dict[str, float] = {}
 
 
@@ -82,9 +115,15 @@ def _compiled() -> Iterator[None]:
 VARIANTS: dict[str, tuple[dict, dict, Callable[[], contextlib.AbstractContextManager]]] = {
     "default": ({}, {}, _nothing),
     "reference": ({}, {}, _reference),
+    "torch-optimizer": ({}, {}, _torch_optimizer),
+    "before": ({}, {}, _before),
     "batch256": ({}, {"batch_size": 256}, _nothing),
+    "batch16": ({}, {"batch_size": 16}, _nothing),
     "penalty8": ({}, {"penalty_every": 8}, _nothing),
     "warp4": ({"warp_layers": 4}, {}, _nothing),
+    "warpfeatures32": ({"warp_features": 32}, {}, _nothing),
+    "batch256-warpfeatures32": ({"warp_features": 32}, {"batch_size": 256}, _nothing),
+    "batch256-steps1200": ({}, {"batch_size": 256, "steps": 1200}, _nothing),
 }
 
 

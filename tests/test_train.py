@@ -258,3 +258,30 @@ def test_penalties_come_every_kth_step_with_k_times_their_weight(spiral):
     assert once > bare
     assert loss(8, penalty_every=4) - bare == pytest.approx(4 * (once - bare), rel=1e-9)
     assert loss(9, penalty_every=4) == bare
+
+
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+def test_direct_adam_and_clipping_are_torchs_bit_for_bit(spiral, monkeypatch, dtype):
+    # clip_gradients and adam_step skip torch's per-call bookkeeping, not its arithmetic: a
+    # fit with them equals one through clip_grad_norm_ and Adam.step to the last bit. A low
+    # clip bound makes the clipping act.
+    config = dataclasses.replace(FAST, steps=40, grad_clip=0.05, dtype=dtype)
+    runs = []
+    for reference in (False, True):
+        if reference:
+
+            def clip(module, max_norm):
+                return torch.nn.utils.clip_grad_norm_(module.parameters(), max_norm, foreach=True)
+
+            def step(optimizer, lr):
+                for group in optimizer.param_groups:
+                    group["lr"] = lr
+                optimizer.step()
+
+            monkeypatch.setattr(train_module, "clip_gradients", clip)
+            monkeypatch.setattr(train_module, "adam_step", step)
+        policy = make_policy(spiral, dtype=torch.float32)
+        history = fit(policy, spiral, no_split(spiral), config, progress=False).history
+        runs.append((history, [p.detach().clone() for p in policy.parameters()]))
+    assert runs[0][0] == runs[1][0]
+    assert all(torch.equal(a, b) for a, b in zip(runs[0][1], runs[1][1], strict=True))

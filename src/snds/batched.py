@@ -50,6 +50,7 @@ from snds.train import (
     _step,
     _step_loss,
     _StepInputs,
+    clip_gradients,
 )
 
 __all__ = ["fit_many"]
@@ -232,9 +233,7 @@ def _fit_group(fits: list[_Fit], *, progress: bool) -> None:
             # fit is left out, as fit skips its backward pass.
             (losses if len(healthy) == len(active) else losses[healthy]).sum().backward()
         for i in healthy:
-            norm = torch.nn.utils.clip_grad_norm_(
-                active[i].policy.parameters(), config.grad_clip, foreach=True
-            )
+            norm = clip_gradients(active[i].policy, config.grad_clip)
             # As in fit: a NaN gradient is a diverged step too.
             diverged[i] = not bool(torch.isfinite(norm))
         stopped = []
