@@ -43,6 +43,25 @@ def test_the_fused_path_is_taken_only_where_autograd_records():
         assert not fused.active()
     with _reference():
         assert not fused.active()
+    # nor while a graph is traced, in any grad mode (exports see the plain operations)
+    seen = []
+
+    def probe(x):
+        seen.append(fused.active())
+        return x * 2
+
+    torch.jit.trace(probe, torch.ones(2))
+    torch.export.export(_Probe(probe), (torch.ones(2),))
+    assert seen and not any(seen)
+
+
+class _Probe(torch.nn.Module):
+    def __init__(self, fn):
+        super().__init__()
+        self.fn = fn
+
+    def forward(self, x):
+        return self.fn(x)
 
 
 def _warped(dim: int, max_log_scale: float, seed: int) -> WarpedLyapunov:

@@ -4,7 +4,7 @@ Where autograd records a pass (training), :mod:`snds.nn` computes the same maths
 or faster operations: sin and cos of the coupling layers' Fourier angles from one pass, and
 weights in the memory layout that makes the products with a handful of output columns fast
 (docs/design.md, "Training in seconds"). Without autograd (evaluation, checks, export) the
-plain operations run, so exported graphs are unchanged.
+plain operations run, and so they do while a graph is traced: exported graphs are unchanged.
 """
 
 from __future__ import annotations
@@ -18,8 +18,15 @@ ENABLED = True
 
 
 def active() -> bool:
-    """Whether the fused path applies: :data:`ENABLED` and autograd recording."""
-    return ENABLED and torch.is_grad_enabled()
+    """Whether the fused path applies: :data:`ENABLED`, autograd recording, and no graph
+    being traced (``torch.export``, ONNX export, ``torch.compile`` and ``torch.jit.trace``
+    see the plain operations, whatever the grad mode)."""
+    return (
+        ENABLED
+        and torch.is_grad_enabled()
+        and not torch.compiler.is_compiling()
+        and not torch.jit.is_tracing()
+    )
 
 
 class _SinCos(torch.autograd.Function):
