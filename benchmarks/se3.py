@@ -30,6 +30,7 @@ import json
 import os
 import platform
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import torch
@@ -39,6 +40,7 @@ from snds.data import Normalization, load_demonstrations, load_lasa, split_sampl
 from snds.data.poses import with_synthetic_orientations
 from snds.evaluate import evaluate
 from snds.policy import PolicyConfig, StablePolicy
+from snds.recipes import RECIPES
 from snds.se3 import evaluate_pose, make_pose_policy
 from snds.train import TrainConfig, fit
 
@@ -178,9 +180,9 @@ def se3(args: argparse.Namespace) -> None:
             split = split_samples(tangent, test_fraction=0.2, seed=args.seed)
             cpu = time.process_time()
             shape = args.shape_weight if stable else 0.0
-            # No noise on the states, as `snds train --se3` (snds.cli.POSE_POSITION_NOISE).
-            config = TrainConfig(
-                steps=args.steps, seed=args.seed, shape_weight=shape, position_noise=0.0
+            # The settings of `snds train --se3`, with this run's shape penalty.
+            config = replace(
+                RECIPES["pose"].train, steps=args.steps, seed=args.seed, shape_weight=shape
             )
             result = fit(policy, tangent, split, config)
             cpu = time.process_time() - cpu

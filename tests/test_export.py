@@ -7,6 +7,7 @@ import json
 import runpy
 import sys
 import zipfile
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +20,7 @@ from snds.data import Demonstration, Demonstrations
 from snds.data.poses import with_synthetic_orientations
 from snds.io import save_model
 from snds.policy import PolicyConfig
+from snds.recipes import RECIPES
 from snds.se3 import make_pose_policy
 
 from conftest import SMALL, make_policy, spiral_demos
@@ -159,9 +161,8 @@ def test_float32_onnx_agrees_to_float32_rounding(policy, tmp_path: Path) -> None
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_onnx_equals_the_library_in_its_own_precision(tmp_path: Path, dtype) -> None:
     # GIVEN the compact architecture (what a batch controller exports), exported in a dtype
-    from snds.cli import ARCHITECTURES
-
-    config = PolicyConfig(**{**SMALL.to_dict(), **ARCHITECTURES["compact"]})
+    compact = RECIPES["compact"].policy
+    config = replace(SMALL, hidden=compact.hidden, fourier_features=compact.fourier_features)
     policy = make_policy(shifted_spiral(), config=config, seed=5, dtype=torch.float32).eval()
     path = export.export_onnx(policy, tmp_path / "policy.onnx", dtype=dtype)
     # WHEN it is checked on 10,000 states against the library in float64 and in its dtype

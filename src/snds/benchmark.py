@@ -24,14 +24,19 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from snds.data import LASA_NAMES, load_lasa, split_samples
 from snds.errors import DataError, SNDSError
+from snds.evaluate import evaluate
 from snds.io import atomic_write
-from snds.stability import ROLLOUTS, SAMPLES
 from snds.method import Fitted
 from snds.methods import METHODS, get_method
-from snds.policy import Policy
+from snds.models import load_model
+from snds.plotting import Panel, plot_panels
+from snds.policy import float64_copy
+from snds.runs import RunFolder
+from snds.stability import ROLLOUTS, SAMPLES
 
 #: Named groups of LASA motions; ``paper8`` are the eight of the paper's Fig. 4.
 MOTION_GROUPS: dict[str, tuple[str, ...]] = {
@@ -283,16 +288,6 @@ class TaskOutput:
     model: dict[str, bytes]
 
 
-def _model_files(policy: Policy, extra: dict) -> dict[str, bytes]:
-    import tempfile
-
-    from snds.io import save_model
-
-    with tempfile.TemporaryDirectory() as folder:
-        save_model(policy, Path(folder), extra=extra)
-        return {path.name: path.read_bytes() for path in Path(folder).iterdir()}
-
-
 def run_task(task: Task, settings: SweepSettings) -> TaskOutput:
     """Trains and evaluates one task in this process with one torch thread.
 
@@ -332,10 +327,6 @@ def run_batch(tasks: Sequence[Task], settings: SweepSettings) -> list[TaskOutput
     Returns:
         Each task's result row and trained model's files, in order.
     """
-    import torch
-
-    from snds.evaluate import evaluate
-
     method = get_method(tasks[0].method)
     if any(task.method != method.name for task in tasks):
         raise SNDSError(f"a batch runs one method, got {sorted({t.method for t in tasks})}")
@@ -401,7 +392,7 @@ def _output(task: Task, fitted: Fitted, metrics: dict, cpu: float, peak: float) 
         "split": {"test_fraction": 0.2, "seed": task.seed, "test_demos": None},
         **fitted.record,
     }
-    return TaskOutput(row=row, model=_model_files(fitted.policy, extra))
+    return TaskOutput(row=row, model=RunFolder.model_files(fitted.policy, extra))
 
 
 def _units(tasks: Sequence[Task], batch_fits: int) -> list[tuple[Task, ...]]:
@@ -590,9 +581,7 @@ def _run_dask(
 
 def _store(out: Path, output: TaskOutput) -> None:
     """Writes a run's model, then appends its row: a row on disk always has its model."""
-    folder = out / Task.from_row(output.row).model_dir
-    for name, content in output.model.items():
-        atomic_write(folder / name, lambda tmp, content=content: tmp.write_bytes(content))
+    RunFolder(out / Task.from_row(output.row).model_dir).write_files(output.model)
     _append_row(out / RESULTS_FILE, output.row)
 
 
@@ -767,18 +756,12 @@ def plot_benchmark(rows: Sequence[dict], out: Path) -> list[Path]:
 
     panels = _panels(rows, out, motions, methods)
     if any(panel is not None for row in panels for panel in row):
-        from snds.plotting import plot_panels
-
         paths.append(plot_panels(panels, out / "streamlines.png"))
     return paths
 
 
 def _panels(rows: Sequence[dict], out: Path, motions: list[str], methods: list[str]) -> list:
     """The streamline panels: the lowest seed's saved model per method (row) and motion."""
-    from snds.io import load_model
-    from snds.plotting import Panel
-    from snds.policy import float64_copy
-
     grid = []
     for method in methods:
         line = []

@@ -60,6 +60,8 @@ from torch import Tensor
 
 from snds.data.demonstrations import Demonstrations
 from snds.errors import ConfigError
+from snds.evaluate import reproduce
+from snds.metrics import dtw
 from snds.policy import Policy, float64_copy
 from snds.rollout import policy_guard
 from snds.stability import settle_level
@@ -1222,9 +1224,6 @@ def check_obstacles(
         step_tolerance_factor: Local error per step, in extents.
         seed: Seed of the random starts.
     """
-    from snds.evaluate import reproduce
-    from snds.metrics import dtw
-
     wall, cpu = _time.perf_counter(), _time.process_time()
     policy = float64_copy(policy)
     scene.check(demos.dim, demos.target)

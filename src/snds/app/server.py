@@ -64,10 +64,13 @@ from snds.app.strokes import (
     write_csv,
 )
 from snds.app.worker import Job, Jobs
+from snds.cli import _build_parser
+from snds.data import Normalization
 from snds.errors import SNDSError
 from snds.evaluate import reproduce
-from snds.io import load_model, to_jsonable
-from snds.policy import float64_copy
+from snds.io import to_jsonable
+from snds.models import load_model
+from snds.policy import PolicyConfig, StablePolicy, float64_copy
 from snds.rollout import guarded_step, policy_guard
 
 __all__ = ["LOCAL_HOSTS", "METHOD_FLAGS", "STATIC", "create_app", "serve"]
@@ -189,9 +192,6 @@ def _settings(raw: Any, limits: Limits) -> dict[str, int]:
 def _warm_up() -> None:
     """Builds and runs a policy once: torch's first use of these layers takes over a second,
     which the first trained model's field would otherwise wait for."""
-    from snds.data import Normalization
-    from snds.policy import PolicyConfig, StablePolicy
-
     normalization = Normalization(center=np.zeros(2), length=1.0, time=1.0)
     policy = float64_copy(StablePolicy(dim=2, normalization=normalization, config=PolicyConfig()))
     with torch.no_grad():
@@ -502,8 +502,6 @@ def create_app(
         path = job.folder / "export" / "policy.onnx"
 
         def export() -> None:
-            from snds.cli import _build_parser
-
             # snds export itself: the same file, the same equality check, the same refusals.
             args = _build_parser().parse_args(
                 ["--quiet", "export", str(job.model), "--format", "onnx", "--out", str(path)]

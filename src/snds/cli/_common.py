@@ -18,14 +18,14 @@ from snds.data import (
     split_samples,
 )
 from snds.errors import ConfigError, SNDSError
-from snds.io import load_model
+from snds.models import load_model
+from snds.obstacles import Scene, load_scene, parse_obstacle, parse_workspace
+from snds.plotting import plot_all, plot_obstacles
 from snds.policy import StablePolicy
 
 
 def _scene(args: argparse.Namespace):
     """The obstacles of ``--scene``, ``--obstacle`` and ``--workspace``; None without any."""
-    from snds.obstacles import Scene, load_scene, parse_obstacle, parse_workspace
-
     if not (args.obstacle or args.workspace or args.scene):
         return None
     base = load_scene(args.scene) if args.scene is not None else Scene()
@@ -107,12 +107,8 @@ def _write_plots(
     history: list[float] | None,
     scene=None,
 ) -> list[Path]:
-    from snds.plotting import plot_all
-
     policy = policy.to(torch.float64).eval()
     if scene is not None:
-        from snds.plotting import plot_obstacles
-
         return [plot_obstacles(policy, demos, scene, out / "obstacles.png")]
     return plot_all(policy, demos, out, history=history)
 

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from snds import benchmark
+
 __all__ = ["register", "run"]
 
 
@@ -43,8 +45,6 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from snds import benchmark
-
     tasks = benchmark.make_tasks(
         benchmark.resolve_motions(args.motions),
         benchmark.resolve_methods(args.methods),

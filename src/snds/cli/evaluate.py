@@ -20,7 +20,9 @@ from snds.data import Demonstrations
 from snds.errors import ConfigError
 from snds.evaluate import evaluate
 from snds.io import to_jsonable, write_json
+from snds.obstacles import check_obstacles
 from snds.policy import Policy
+from snds.runs import RunFolder
 
 __all__ = ["register", "run"]
 
@@ -56,7 +58,7 @@ def run(args: argparse.Namespace) -> int:
         samples=args.samples,
     )
     metrics["train_seconds"] = description.get("train_result", {}).get("seconds")
-    write_json(args.model / "metrics.json", to_jsonable(metrics))
+    RunFolder(args.model).write_metrics(metrics)
     if not args.quiet:
         _summarise(args.model, metrics)
     return 0
@@ -64,8 +66,6 @@ def run(args: argparse.Namespace) -> int:
 
 def _evaluate_obstacles(args: argparse.Namespace, policy: Policy, demos: Demonstrations, scene):
     """``snds evaluate`` with obstacles: the stability report under them, ``obstacles.json``."""
-    from snds.obstacles import check_obstacles
-
     scene.check(demos.dim, demos.target)
     report = check_obstacles(policy, demos, scene, rollouts=args.rollouts, seed=args.seed)
     write_json(args.model / "obstacles.json", to_jsonable(report.to_dict()))
@@ -97,7 +97,7 @@ def _evaluate_se3(args: argparse.Namespace) -> int:
         policy, poses, split, seed=args.seed, rollouts=args.rollouts, samples=args.samples
     )
     metrics["train_seconds"] = description.get("train_result", {}).get("seconds")
-    write_json(args.model / "metrics.json", to_jsonable(metrics))
+    RunFolder(args.model).write_metrics(metrics)
     if not args.quiet:
         _summarise_se3(args.model, metrics)
     return 0

@@ -10,7 +10,9 @@ import torch
 from snds.cli._args import _obstacle_arguments
 from snds.cli._common import _scene
 from snds.errors import ConfigError
-from snds.io import load_model, to_jsonable, write_json
+from snds.io import to_jsonable, write_json
+from snds.models import load_model
+from snds.obstacles import ModulatedPolicy
 from snds.policy import Policy
 
 __all__ = ["register", "run"]
@@ -75,7 +77,6 @@ def run(args: argparse.Namespace) -> int:
 def _with_obstacles(policy: Policy, scene) -> Policy:
     """The policy of ``snds export --obstacle``: the modulation in the graph (fixed obstacles,
     position models), or a one-line refusal of what the graph cannot hold."""
-    from snds.obstacles import ModulatedPolicy
     from snds.se3 import PosePolicy
 
     if isinstance(policy, PosePolicy):

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 from snds.cli._args import _data_arguments, _obstacle_arguments
@@ -15,6 +14,7 @@ from snds.cli._common import (
     _write_plots,
 )
 from snds.errors import ConfigError
+from snds.runs import RunFolder
 
 __all__ = ["register", "run"]
 
@@ -38,10 +38,7 @@ def run(args: argparse.Namespace) -> int:
     policy, _, demos = _model_and_data(args)
     if scene is not None:
         scene.check(demos.dim, demos.target)
-    history = None
-    loss_file = args.model / "loss.json"
-    if loss_file.is_file():
-        history = json.loads(loss_file.read_text()).get("history")
+    history = RunFolder(args.model).read_history()
     paths = _write_plots(policy, demos, args.out or args.model, history, scene=scene)
     if not args.quiet:
         for path in paths:
@@ -53,8 +50,7 @@ def _plot_se3(args: argparse.Namespace) -> int:
     from snds.se3 import plot_pose_policy
 
     policy, _, poses = _pose_model_and_data(args)
-    loss_file = args.model / "loss.json"
-    history = json.loads(loss_file.read_text()).get("history") if loss_file.is_file() else None
+    history = RunFolder(args.model).read_history()
     paths = plot_pose_policy(policy, poses, args.out or args.model, history=history)
     if not args.quiet:
         for path in paths:

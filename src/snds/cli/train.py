@@ -8,7 +8,6 @@ the model has been saved.
 from __future__ import annotations
 
 import argparse
-import copy
 import dataclasses
 import sys
 from pathlib import Path
@@ -28,28 +27,18 @@ from snds.cli._common import (
 from snds.data import Normalization
 from snds.errors import ConfigError
 from snds.evaluate import evaluate
-from snds.io import remove_temporaries, save_model, to_jsonable, write_json
 from snds.policy import DEFAULT_WARP_LAYERS, Policy, PolicyConfig, StablePolicy
-from snds.train import CHECKPOINT, TrainConfig, TrainResult, fit
+from snds.recipes import ARCHITECTURES, RECIPES
+from snds.runs import RunFolder
+from snds.train import TrainConfig, TrainResult, fit
 
 __all__ = ["evaluate", "register", "run"]
 
-#: ``snds train --architecture`` choices: overrides of :class:`PolicyConfig`'s network sizes.
-#: "compact" is for controllers that evaluate large batches (measured in benchmarks/README.md).
-ARCHITECTURES: dict[str, dict[str, object]] = {
-    "default": {},
-    "compact": {"hidden": (64, 64), "fourier_features": 64},
-}
-
-
-#: ``snds train --shape-weight`` for SE(3) pose models (TrainConfig.shape_weight). Without it
-#: a pose policy's 6-D V grows ill-conditioned off the one-curve data and the field stiff:
-#: on Messy Snake lifted to SE(3), 0 of 1,000 random poses arrived within the horizon; with
-#: it, 1,000 of 1,000 (benchmarks/README.md, "Higher dimensions and SE(3)").
-POSE_SHAPE_WEIGHT = 0.01
-#: ``snds train --position-noise`` for SE(3) pose models. The positions' default 0.0015 left
-#: Messy Snake lifted to SE(3) converging from 0 of 1,000 random poses (1,000 without it).
-POSE_POSITION_NOISE = 0.0
+#: The preset behind the flags' defaults (:data:`snds.recipes.RECIPES`).
+DEFAULT = RECIPES["default"]
+#: ``--shape-weight`` and ``--position-noise`` of SE(3) pose models: the "pose" recipe's.
+POSE_SHAPE_WEIGHT = RECIPES["pose"].train.shape_weight
+POSE_POSITION_NOISE = RECIPES["pose"].train.position_noise
 
 
 def register(commands: argparse._SubParsersAction) -> None:
@@ -66,15 +55,15 @@ def register(commands: argparse._SubParsersAction) -> None:
         default=None,
         help="hold out these whole demonstrations (I,J,...) instead of random samples",
     )
-    parser.add_argument("--steps", type=int, default=TrainConfig.steps, help="optimiser steps")
-    parser.add_argument("--window", type=int, default=TrainConfig.window, help="Euler window Nw")
+    parser.add_argument("--steps", type=int, default=DEFAULT.train.steps, help="optimiser steps")
+    parser.add_argument("--window", type=int, default=DEFAULT.train.window, help="Euler window Nw")
     parser.add_argument(
-        "--velocity-loss", choices=["mse", "srvf"], default=TrainConfig.velocity_shape
+        "--velocity-loss", choices=["mse", "srvf"], default=DEFAULT.train.velocity_shape
     )
     parser.add_argument(
         "--nominal-weight",
         type=float,
-        default=TrainConfig.nominal_weight,
+        default=DEFAULT.train.nominal_weight,
         help="weight of the velocity term on the nominal field before the projection, which "
         "keeps a fit from stalling where the projection hides f's gradient (0: the paper's "
         "loss)",
@@ -85,7 +74,7 @@ def register(commands: argparse._SubParsersAction) -> None:
         default=None,
         help="standard deviation of noise added to the training states (model coordinates, "
         "the data span about [-1, 1]), for demonstrations that run close together at "
-        f"different speeds (default {TrainConfig.position_noise:g} for positions, "
+        f"different speeds (default {DEFAULT.train.position_noise:g} for positions, "
         f"{POSE_POSITION_NOISE:g} for SE(3) pose models; 0: off)",
     )
     parser.add_argument(
@@ -94,31 +83,31 @@ def register(commands: argparse._SubParsersAction) -> None:
         default=None,
         help="weight of the penalty that keeps V's sublevel sets round off the data, against "
         f"stiff fields (default {POSE_SHAPE_WEIGHT:g} for SE(3) pose models, "
-        f"{TrainConfig.shape_weight:g} (off) for positions)",
+        f"{DEFAULT.train.shape_weight:g} (off) for positions)",
     )
     parser.add_argument(
         "--decay-rate",
         type=float,
-        default=PolicyConfig.decay_rate,
+        default=DEFAULT.policy.decay_rate,
         help="rho in a(x) = rho V(x); 0 (with --decay-far 0 --decay-near 0) is the paper's "
         "relaxed mode (dV/dt <= 0 only)",
     )
     parser.add_argument(
         "--decay-far",
         type=float,
-        default=PolicyConfig.decay_far,
+        default=DEFAULT.policy.decay_far,
         help="extra decay rate per extent beyond the demonstrations' extent (0: off)",
     )
     parser.add_argument(
         "--decay-near",
         type=float,
-        default=PolicyConfig.decay_near,
+        default=DEFAULT.policy.decay_near,
         help="extra decay rate at the target, fading out at 0.2 of the extent (0: off)",
     )
     parser.add_argument(
         "--warp-layers",
         type=int,
-        default=PolicyConfig.warp_layers,
+        default=DEFAULT.policy.warp_layers,
         help="coupling layers of a learned warp inside V, for demonstrations that wind back "
         f"and forth (default {DEFAULT_WARP_LAYERS} for positions of dimension >= 2, 0 in 1-D "
         "and for SE(3) poses; 0: off, V convex, ~3x faster training, see "
@@ -127,9 +116,9 @@ def register(commands: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--warp-weight",
         type=float,
-        default=TrainConfig.warp_weight,
+        default=DEFAULT.train.warp_weight,
         help="weight of the penalty that keeps the warp's Jacobian near the identity, against "
-        f"stiff fields (default {TrainConfig.warp_weight:g}; 0: off)",
+        f"stiff fields (default {DEFAULT.train.warp_weight:g}; 0: off)",
     )
     parser.add_argument("--unconstrained", action="store_true", help="behavioural cloning")
     parser.add_argument(
@@ -175,13 +164,10 @@ def run(args: argparse.Namespace) -> int:
         config=_policy_config(args),
         seed=args.seed,
     )
-    if out.exists() and not out.is_dir():
-        raise ConfigError(f"--out {out}: is a file, not a directory")
-    remove_temporaries(out)
-    checkpoint = out / CHECKPOINT
-    if not args.resume:
-        checkpoint.unlink(missing_ok=True)
-    elif not checkpoint.is_file() and not args.quiet:
+    folder = RunFolder(out)
+    folder.prepare(resume=args.resume)
+    checkpoint = folder.checkpoint
+    if args.resume and not checkpoint.is_file() and not args.quiet:
         print(f"snds: no checkpoint in {out}: training from the start", file=sys.stderr)
     result = fit(
         policy,
@@ -203,11 +189,11 @@ def run(args: argparse.Namespace) -> int:
         samples=args.samples,
     )
     metrics["train_seconds"] = result.seconds
-    write_json(out / "metrics.json", to_jsonable(metrics))
+    folder.write_metrics(metrics)
     if args.plot:
         _write_plots(policy.to("cpu"), demos, out, result.history)
     # Only now is the run complete: until here a kill leaves the checkpoint to resume from.
-    checkpoint.unlink(missing_ok=True)
+    folder.finish()
     if not args.quiet:
         _summarise(out, metrics)
     return 0
@@ -216,18 +202,19 @@ def run(args: argparse.Namespace) -> int:
 def _train_settings(
     args: argparse.Namespace,
     *,
-    shape_weight: float = TrainConfig.shape_weight,
-    position_noise: float = TrainConfig.position_noise,
+    shape_weight: float = DEFAULT.train.shape_weight,
+    position_noise: float = DEFAULT.train.position_noise,
 ) -> tuple[dict, TrainConfig]:
-    """The split record and the optimisation settings of ``snds train``'s arguments;
-    ``shape_weight`` and ``position_noise`` are the defaults of their flags for this kind of
-    model."""
+    """The split record and the optimisation settings of ``snds train``'s arguments, on the
+    default recipe's; ``shape_weight`` and ``position_noise`` are the defaults of their flags
+    for this kind of model."""
     split_record = {
         "test_fraction": args.test_fraction,
         "seed": args.seed,
         "test_demos": args.test_demos,
     }
-    train_config = TrainConfig(
+    train_config = dataclasses.replace(
+        DEFAULT.train,
         steps=args.steps,
         window=args.window,
         velocity_shape=args.velocity_loss,
@@ -245,27 +232,15 @@ def _save_run(
     out: Path, policy: Policy, result: TrainResult, *, data: dict, split: dict, train: TrainConfig
 ) -> None:
     """Writes a trained model with the record of how it was trained, and its loss history."""
-    # The file is written from a CPU copy: the policy stays on its device (--device) for the
-    # stability check that follows.
-    if policy.center.device.type != "cpu":
-        policy = copy.deepcopy(policy).to("cpu")
-    # Results of an earlier run must not sit beside the new model if this one is killed.
-    for name in ("metrics.json", "loss.json"):
-        (out / name).unlink(missing_ok=True)
-    record = {
-        "data": data,
-        "split": split,
-        "train": train.to_dict(),
-        "train_result": {k: v for k, v in dataclasses.asdict(result).items() if k != "history"},
-    }
-    save_model(policy, out, extra=record)
-    write_json(out / "loss.json", {"history": result.history})
+    record = {"data": data, "split": split, "train": train.to_dict()}
+    RunFolder(out).save(policy, result, record=record)
 
 
 def _policy_config(args: argparse.Namespace) -> PolicyConfig:
-    """The architecture that ``snds train``'s flags ask for, for positions and poses alike."""
-    return PolicyConfig(
-        **ARCHITECTURES[args.architecture],
+    """The architecture that ``snds train``'s flags ask for, for positions and poses alike:
+    the ``--architecture`` recipe's, with the flags' decay terms and warp."""
+    return dataclasses.replace(
+        RECIPES[args.architecture].policy,
         decay_rate=args.decay_rate,
         decay_far=args.decay_far,
         decay_near=args.decay_near,
@@ -293,7 +268,7 @@ def _train_se3(args: argparse.Namespace) -> int:
         policy, poses, split, seed=args.seed, rollouts=args.rollouts, samples=args.samples
     )
     metrics["train_seconds"] = result.seconds
-    write_json(out / "metrics.json", to_jsonable(metrics))
+    RunFolder(out).write_metrics(metrics)
     if args.plot:
         from snds.se3 import plot_pose_policy
 

@@ -1,0 +1,47 @@
+"""Named presets of the library: a policy architecture with its training settings.
+
+``snds train`` starts from these, and so do the benchmarks and the tests, so that a Python
+user who calls :func:`snds.fit` with ``RECIPES[name].train`` on a policy built from
+``RECIPES[name].policy`` trains exactly what the command line trains. The measurements that
+chose each preset are in ``docs/design.md`` ("Presets").
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from snds.policy import PolicyConfig
+from snds.train import TrainConfig
+
+__all__ = ["ARCHITECTURES", "RECIPES", "Recipe"]
+
+
+@dataclass(frozen=True)
+class Recipe:
+    """A preset: how to build a policy and how to train it.
+
+    Attributes:
+        policy: The architecture of the policy (:class:`snds.policy.PolicyConfig`).
+        train: The optimisation settings (:class:`snds.train.TrainConfig`).
+    """
+
+    policy: PolicyConfig = field(default_factory=PolicyConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+
+
+#: The presets by name.
+#:
+#: - ``default``: the library's defaults, for positions in R^n.
+#: - ``compact``: smaller networks (hidden (64, 64), 64 Fourier features), for controllers
+#:   that evaluate large batches.
+#: - ``pose``: the training settings of SE(3) pose models: V's shape penalty on
+#:   (``shape_weight`` 0.01), no noise on the training states (``position_noise`` 0).
+RECIPES: dict[str, Recipe] = {
+    "default": Recipe(),
+    "compact": Recipe(policy=PolicyConfig(hidden=(64, 64), fourier_features=64)),
+    "pose": Recipe(train=TrainConfig(shape_weight=0.01, position_noise=0.0)),
+}
+
+#: The recipes that differ from ``default`` in the policy's network sizes only: the choices
+#: of ``snds train --architecture``.
+ARCHITECTURES: tuple[str, ...] = ("default", "compact")
