@@ -32,6 +32,7 @@ from _readme import write_readme_section
 from snds.data import Demonstration, Demonstrations, Normalization, load_lasa, split_samples
 from snds.evaluate import evaluate
 from snds.policy import PolicyConfig, StablePolicy
+from snds.stability import CheckConfig
 from snds.train import TrainConfig, fit
 
 HERE = Path(__file__).resolve().parent
@@ -80,7 +81,10 @@ def main() -> None:
         result = fit(policy, demos, split, TrainConfig(steps=args.steps, seed=args.seed))
         cpu = time.process_time() - cpu
         metrics = evaluate(
-            policy, demos, split, seed=args.seed, rollouts=args.rollouts, samples=args.samples
+            policy,
+            demos,
+            split,
+            check=CheckConfig(seed=args.seed, rollouts=args.rollouts, samples=args.samples),
         )
         stability = metrics["stability"]
         rows.append(

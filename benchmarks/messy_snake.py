@@ -48,6 +48,7 @@ from snds.evaluate import evaluate
 from snds.io import atomic_write
 from snds.metrics import velocity_mse
 from snds.policy import PolicyConfig, StablePolicy, float64_copy, project
+from snds.stability import CheckConfig
 from snds.train import TrainConfig, fit
 
 HERE = Path(__file__).resolve().parent
@@ -153,7 +154,9 @@ def run_variant(
     config = TrainConfig(steps=steps, seed=seed, **{**BASE[1], **train_overrides})
     fit(policy, demos, split, config, progress=False)
     cpu = time.process_time() - cpu
-    metrics = evaluate(policy, demos, split, seed=seed, rollouts=rollouts, samples=samples)
+    metrics = evaluate(
+        policy, demos, split, check=CheckConfig(seed=seed, rollouts=rollouts, samples=samples)
+    )
     x, v = _samples(demos, split.train)
     row = {
         "task": task,

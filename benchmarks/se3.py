@@ -41,7 +41,8 @@ from snds.data.poses import with_synthetic_orientations
 from snds.evaluate import evaluate
 from snds.policy import PolicyConfig, StablePolicy
 from snds.recipes import RECIPES
-from snds.se3 import evaluate_pose, make_pose_policy
+from snds.se3 import make_pose_policy
+from snds.stability import CheckConfig
 from snds.train import TrainConfig, fit
 
 HERE = Path(__file__).resolve().parent
@@ -109,9 +110,7 @@ def arm3d(args: argparse.Namespace) -> None:
             cpu = time.process_time()
             result = fit(policy, demos, split, TrainConfig(steps=args.steps, seed=args.seed))
             cpu = time.process_time() - cpu
-            metrics = evaluate(
-                policy, demos, split, seed=args.seed, rollouts=args.rollouts, samples=args.samples
-            )
+            metrics = evaluate(policy, demos, split, check=_check(args))
             stability = metrics.pop("stability")
             row = {
                 "task": task,
@@ -166,6 +165,10 @@ def se3_demos(task: str, seed: int):
     return with_synthetic_orientations(positions, seed=seed)
 
 
+def _check(args: argparse.Namespace) -> CheckConfig:
+    return CheckConfig(rollouts=args.rollouts, samples=args.samples, seed=args.seed)
+
+
 def se3(args: argparse.Namespace) -> None:
     for task in SE3_TASKS:
         if args.tasks and task not in args.tasks:
@@ -174,21 +177,17 @@ def se3(args: argparse.Namespace) -> None:
         for method, stable in (("snds", True), ("bc", False)):
             if method not in args.methods:
                 continue
-            policy, tangent = make_pose_policy(
-                demos, config=PolicyConfig(stable=stable), seed=args.seed
-            )
-            split = split_samples(tangent, test_fraction=0.2, seed=args.seed)
+            policy = make_pose_policy(demos, config=PolicyConfig(stable=stable), seed=args.seed)
+            split = split_samples(demos, test_fraction=0.2, seed=args.seed)
             cpu = time.process_time()
             shape = args.shape_weight if stable else 0.0
             # The settings of `snds train --se3`, with this run's shape penalty.
             config = replace(
                 RECIPES["pose"].train, steps=args.steps, seed=args.seed, shape_weight=shape
             )
-            result = fit(policy, tangent, split, config)
+            result = fit(policy, demos, split, config)
             cpu = time.process_time() - cpu
-            metrics = evaluate_pose(
-                policy, demos, split, seed=args.seed, rollouts=args.rollouts, samples=args.samples
-            )
+            metrics = evaluate(policy, demos, split, check=_check(args))
             stability = metrics.pop("stability")
             row = {
                 "task": task,
@@ -226,11 +225,11 @@ def _se3_table(args: argparse.Namespace) -> tuple[str, list[tuple[str, str]]]:
     columns = [
         ("task", "{task}"),
         ("method", "{method}"),
-        ("position DTW", "{position_dtw:.3g}"),
-        ("DTW (paper scale)", "{position_dtw_paper:.3f}"),
-        ("final position error", "{final_position_error:.3g}"),
-        ("orientation error along [rad]", "{orientation_error_along:.4f}"),
-        ("final orientation error [rad]", "{final_orientation_error:.4f}"),
+        ("position DTW", "{dtw:.3g}"),
+        ("DTW (paper scale)", "{dtw_paper:.3f}"),
+        ("final position error", "{final_distance:.3g}"),
+        ("orientation error along [rad]", "{angle_error_along:.4f}"),
+        ("final orientation error [rad]", "{final_angle_error:.4f}"),
         ("converged", "{converged_fraction:.3f} of {stability[rollouts]}"),
         ("violations", "{decrease_violations} of {samples_checked}"),
         ("largest safe step [s]", "{stability[largest_safe_dt]:.2g}"),

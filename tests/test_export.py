@@ -285,7 +285,7 @@ def pose_policy():
     demos = with_synthetic_orientations(
         Demonstrations(base.demos, base.target, "spiral"), target_orientation=(0.0, 0.6, 0.0, 0.8)
     )
-    policy, _ = make_pose_policy(demos, config=SMALL, seed=3)
+    policy = make_pose_policy(demos, config=SMALL, seed=3)
     return policy.eval()
 
 
@@ -310,18 +310,14 @@ def test_random_poses_span_so3_and_reach_far(pose_policy) -> None:
     assert angles.mean() == pytest.approx(np.pi / 2 + 2 / np.pi, abs=0.03)
 
 
-def test_float64_pose_onnx_equals_the_library_twist(pose_policy, pose_onnx64) -> None:
+def test_float64_pose_onnx_equals_the_library(pose_policy, pose_onnx64) -> None:
     # GIVEN the float64 ONNX export of a pose policy, run by onnxruntime
     run = export.load_onnx(pose_onnx64)
     x = export.random_states(pose_policy, 10_000, seed=1)
     # WHEN it and the library's twist see the same 10,000 random poses
     exported = run(x)
     with torch.no_grad():
-        library = (
-            copy.deepcopy(pose_policy)
-            .double()
-            .twist(torch.as_tensor(x[:, :3]), torch.as_tensor(x[:, 3:]))
-        )
+        library = copy.deepcopy(pose_policy).double()(torch.as_tensor(x))
     # THEN the twists agree to rounding, linear and angular blocks alike, one pose at a
     # time (bound buffers of 7 in, 6 out) too
     assert exported.shape == (10_000, 6)

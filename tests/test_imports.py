@@ -33,16 +33,6 @@ DELIBERATE: dict[tuple[str, str], str] = {
 #: test below fails on an entry whose import has gone).
 _SE3_CLI = "the lead's SE(3) unification removes the CLI's SE(3) helpers (issue 17)"
 PENDING: dict[tuple[str, str], str] = {
-    ("snds.cli._common", "snds.data.poses"): _SE3_CLI,
-    ("snds.cli._common", "snds.io"): _SE3_CLI,
-    ("snds.cli.evaluate", "snds.se3"): _SE3_CLI,
-    ("snds.cli.export", "snds.se3"): _SE3_CLI,
-    ("snds.cli.plot", "snds.se3"): _SE3_CLI,
-    ("snds.cli.train", "snds.se3"): _SE3_CLI,
-    ("snds.method", "snds.train"): "method.py: under the lead's SE(3) change (make_policy)",
-    ("snds.method", "snds.batched"): "method.py: under the lead's SE(3) change (make_policy)",
-    ("snds.plotting", "snds.obstacles"): "plotting.py: the lead's rewrite (plot_obstacles)",
-    ("snds.se3", "snds.plotting"): "se3.py: the lead's rewrite (plot_pose_policy goes)",
     ("snds.train", "snds.io"): "train.py (training engineer): save_checkpoint can import "
     "atomic_write at the top, snds.io is a leaf now",
     ("snds.io", "snds.models"): "io.__getattr__ keeps snds.io.load_model/save_model for "

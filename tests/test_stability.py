@@ -4,7 +4,8 @@ import numpy as np
 import torch
 
 from snds.data import Demonstration, Demonstrations
-from snds.stability import check_stability, decrease_violations, settle_level
+from snds.spaces import Euclidean
+from snds.stability import CheckConfig, check_stability, decrease_violations, settle_level
 
 from conftest import SMALL, make_policy
 
@@ -12,7 +13,7 @@ from conftest import SMALL, make_policy
 def test_untrained_stable_policy_reaches_the_target_from_everywhere(spiral):
     # The guarantee needs no training: random weights still converge (a = rho V > 0).
     policy = make_policy(spiral, dataclasses.replace(SMALL, decay_rate=1.0), seed=3)
-    report = check_stability(policy, spiral, rollouts=200, samples=20_000, seed=0)
+    report = check_stability(policy, spiral, CheckConfig(rollouts=200, samples=20_000, seed=0))
     assert report.converged_fraction == 1.0
     assert report.decrease_violations == 0
     assert report.samples_checked == 20_000
@@ -41,11 +42,12 @@ def test_a_field_that_stops_short_is_reported_as_not_converged():
 
     class Stuck(torch.nn.Module):
         stable = False
+        space = Euclidean(2)
 
         def forward(self, x):
             return torch.zeros_like(x)
 
-    report = check_stability(Stuck(), demos, rollouts=50, samples=0, seed=0)
+    report = check_stability(Stuck(), demos, CheckConfig(rollouts=50, samples=0, seed=0))
     assert report.converged_fraction < 0.05
     assert report.decrease_violations == 0 and report.samples_checked == 0
 
@@ -65,7 +67,7 @@ def test_largest_safe_step_is_exact_for_a_quadratic():
 
 def test_report_includes_a_safe_step_above_the_rollout_step(spiral):
     policy = make_policy(spiral, dataclasses.replace(SMALL, decay_rate=1.0), seed=3)
-    report = check_stability(policy, spiral, rollouts=50, samples=5000, seed=0)
+    report = check_stability(policy, spiral, CheckConfig(rollouts=50, samples=5000, seed=0))
     assert report.largest_safe_dt > 0
     assert report.converged_fraction == 1.0
 
@@ -82,11 +84,12 @@ def test_spurious_attractors_are_found_and_clustered():
 
     class TwoWells(torch.nn.Module):
         stable = False
+        space = Euclidean(2)
 
         def forward(self, x):
             return torch.where(x[:, :1] > 0.25, trap - x, -x)
 
-    report = check_stability(TwoWells(), demos, rollouts=200, samples=0, seed=0)
+    report = check_stability(TwoWells(), demos, CheckConfig(rollouts=200, samples=0, seed=0))
     assert 0.2 < report.converged_fraction < 0.8
     assert len(report.spurious_attractors) == 1
     center = np.array(report.spurious_attractors[0]["center"])
@@ -97,12 +100,10 @@ def test_spurious_attractors_are_found_and_clustered():
 
 def test_grid_starts_cover_the_box_corners(spiral):
     policy = make_policy(spiral, dataclasses.replace(SMALL, decay_rate=1.0), seed=3)
-    report = check_stability(policy, spiral, rollouts=50, grid=True, samples=0, seed=0)
+    report = check_stability(policy, spiral, CheckConfig(rollouts=50, grid=True, samples=0, seed=0))
     assert report.rollouts == 64  # 8 x 8 >= 50
     assert report.converged_fraction == 1.0
-    from snds.stability import _grid_box
-
-    points = _grid_box(np.array([1.0, -2.0]), 3.0, 9)
+    points = Euclidean(2).grid(np.array([1.0, -2.0]), 3.0, 9, np.random.default_rng(0))
     assert points.shape == (9, 2)
     assert {tuple(p) for p in points} >= {(-2.0, -5.0), (4.0, 1.0), (1.0, -2.0)}
 
@@ -118,7 +119,9 @@ def test_report_shows_where_plain_euler_would_cycle():
     # pi = -5 x: Euler steps longer than 2/5 s do not decrease V; the data's step is 0.4 s.
     from conftest import linear_policy
 
-    report = check_stability(linear_policy(5.0), _line_demo(0.4), rollouts=40, samples=2000)
+    report = check_stability(
+        linear_policy(5.0), _line_demo(0.4), CheckConfig(rollouts=40, samples=2000)
+    )
     assert report.integrator == "guarded euler"
     assert report.converged_fraction == 1.0
     assert report.shortened_fraction == 1.0
@@ -129,7 +132,9 @@ def test_report_shows_where_plain_euler_would_cycle():
 def test_report_shows_no_shortened_steps_where_euler_is_safe():
     from conftest import linear_policy
 
-    report = check_stability(linear_policy(5.0), _line_demo(0.05), rollouts=40, samples=2000)
+    report = check_stability(
+        linear_policy(5.0), _line_demo(0.05), CheckConfig(rollouts=40, samples=2000)
+    )
     assert report.converged_fraction == 1.0
     assert report.shortened_fraction == 0.0
     assert report.largest_safe_dt > 0.05
@@ -167,7 +172,7 @@ def test_adaptive_rollouts_arrive_when_the_exact_flow_does():
     from conftest import linear_policy
 
     demos = _line_demo(0.05)
-    report = check_stability(linear_policy(1.0), demos, rollouts=41, samples=0, seed=0)
+    report = check_stability(linear_policy(1.0), demos, CheckConfig(rollouts=41, samples=0, seed=0))
     starts = np.random.default_rng(0).uniform(-3.0, 3.0, size=(41, 2))
     exact = np.median(np.log(np.linalg.norm(starts, axis=1) / report.tolerance))
     assert report.converged_fraction == 1.0
@@ -178,11 +183,12 @@ def test_a_diverging_field_without_v_ends_at_the_horizon():
     # GIVEN a field that blows up to inf and NaN: the adaptive steps must still end
     class Away(torch.nn.Module):
         stable = False
+        space = Euclidean(2)
 
         def forward(self, x):
             return 50.0 * x * x.norm(dim=-1, keepdim=True)
 
-    report = check_stability(Away(), _line_demo(0.05), rollouts=20, samples=0, seed=0)
+    report = check_stability(Away(), _line_demo(0.05), CheckConfig(rollouts=20, samples=0, seed=0))
     assert report.converged_fraction == 0.0
 
 
@@ -192,6 +198,8 @@ def test_a_field_the_guard_shortens_at_every_step_ends_within_the_step_budget():
     # steps still contract to the target.
     from conftest import linear_policy
 
-    report = check_stability(linear_policy(1e6), _line_demo(0.4), rollouts=5, samples=0)
+    report = check_stability(
+        linear_policy(1e6), _line_demo(0.4), CheckConfig(rollouts=5, samples=0)
+    )
     assert report.converged_fraction == 1.0
     assert report.shortened_fraction == 1.0

@@ -36,7 +36,7 @@ from snds.models import load_model
 from snds.plotting import Panel, plot_panels
 from snds.policy import float64_copy
 from snds.runs import RunFolder
-from snds.stability import ROLLOUTS, SAMPLES
+from snds.stability import ROLLOUTS, SAMPLES, CheckConfig
 
 #: Named groups of LASA motions; ``paper8`` are the eight of the paper's Fig. 4.
 MOTION_GROUPS: dict[str, tuple[str, ...]] = {
@@ -357,9 +357,9 @@ def run_batch(tasks: Sequence[Task], settings: SweepSettings) -> list[TaskOutput
                     fitted.policy,
                     demos,
                     split,
-                    seed=task.seed,
-                    rollouts=settings.rollouts,
-                    samples=settings.samples,
+                    check=CheckConfig(
+                        seed=task.seed, rollouts=settings.rollouts, samples=settings.samples
+                    ),
                 )
                 for task, fitted, (demos, split) in zip(tasks, fits, data)
             ]

@@ -2,13 +2,17 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import torch
+from dtaidistance import dtw_ndim
 
-from snds.data.demonstrations import Demonstration, Demonstrations, Split
+from snds.data.demonstrations import Split
 from snds.metrics import dtw, final_distance, frechet, swept_error_area, velocity_mse
 from snds.policy import Policy, float64_copy
-from snds.stability import ROLLOUTS, SAMPLES, check_stability
+from snds.spaces import Space
+from snds.stability import CheckConfig, check_stability
 
 
 def evaluation_demos(split: Split) -> list[int]:
@@ -24,83 +28,107 @@ def evaluation_demos(split: Split) -> list[int]:
 MAX_PATH_SAMPLES = 5000
 
 
-def path_reference(demo: Demonstration, max_samples: int = MAX_PATH_SAMPLES) -> np.ndarray:
-    """A demonstration's positions as the reproduction metrics see them, shape (T, n): the
-    samples themselves, or ``max_samples`` of them at uniform times (linear interpolation)
-    when the demonstration is longer."""
+def path_reference(demo: Any, max_samples: int = MAX_PATH_SAMPLES) -> np.ndarray:
+    """A demonstration's states as the reproduction metrics see them, shape (T, dim): the
+    samples themselves, or ``max_samples`` of them at uniform times when the demonstration is
+    longer (positions interpolated linearly, further coordinates such as a pose's
+    orientation taken from the nearest sample)."""
+    states = demo.states
     if len(demo.times) <= max_samples:
-        return demo.positions
+        return states
     times = np.linspace(demo.times[0], demo.times[-1], max_samples)
-    return np.stack(
-        [np.interp(times, demo.times, demo.positions[:, k]) for k in range(demo.dim)], axis=-1
-    )
+    columns = [np.interp(times, demo.times, demo.positions[:, k]) for k in range(demo.dim)]
+    nearest = np.abs(demo.times[None, :] - times[:, None]).argmin(axis=1)
+    return np.concatenate([np.stack(columns, axis=-1), states[nearest, demo.dim :]], axis=1)
 
 
-def reproduce(policy: Policy, demos: Demonstrations, indices: list[int]) -> list[np.ndarray]:
-    """Euler rollouts from the starts of demonstrations, each as long as its
-    :func:`path_reference` with its mean step.
+def reproduce(policy: Policy, demos: Any, indices: list[int]) -> list[np.ndarray]:
+    """Euler rollouts along the policy's space from the starts of demonstrations, each as
+    long as its :func:`path_reference` with its mean step.
 
     All starts are integrated as one batch (each row with its own step, and frozen once it has
     taken its demonstration's number of steps), so the cost is that of the longest one.
 
     Returns:
-        One rollout per index, shape (T_d, n).
+        One rollout per index, shape (T_d, space.dim).
     """
     if not indices:
         return []
     device = getattr(policy, "center", torch.empty(0)).device
+    advance = policy.space.advance
     # The length of each path_reference, without resampling the demonstration to find it.
     steps = [min(len(demos[i].times), MAX_PATH_SAMPLES) - 1 for i in indices]
     durations = [demos[i].duration / k for i, k in zip(indices, steps)]
     dt = torch.tensor(durations, dtype=torch.float64, device=device)
-    starts = np.stack([demos[i].positions[0] for i in indices])
+    starts = np.stack([demos[i].states[0] for i in indices])
     x = torch.tensor(starts, dtype=torch.float64, device=device)
     remaining = torch.tensor(steps, device=device)
     states = [x]
     with torch.no_grad():
         for _ in range(max(steps)):
             moving = (remaining > 0).unsqueeze(-1)
-            x = torch.where(moving, x + dt.unsqueeze(-1) * policy(x), x)
+            x = torch.where(moving, advance(x, dt, policy(x)), x)
             remaining = remaining - 1
             states.append(x)
     paths = torch.stack(states, dim=1).cpu().numpy()
     return [paths[row, : k + 1] for row, k in enumerate(steps)]
 
 
-def accuracy(policy: Policy, demos: Demonstrations, split: Split) -> dict[str, float]:
+def _errors_along(space: Space, path: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """Mean error of each component of ``space`` between the samples of a path (T, dim) and
+    a reference (S, dim) that the DTW alignment of their positions pairs, shape (k,)."""
+    alignment = dtw_ndim.warping_path(
+        np.ascontiguousarray(space.positions(path), dtype=np.float64),
+        np.ascontiguousarray(space.positions(reference), dtype=np.float64),
+    )
+    i, j = np.asarray(alignment).T
+    errors = space.errors(torch.as_tensor(path[i]), torch.as_tensor(reference[j]))
+    return errors.mean(dim=0).numpy()
+
+
+def accuracy(policy: Policy, demos: Any, split: Split) -> dict[str, float]:
     """Velocity MSE on the test samples (also relative to their mean squared speed); DTW,
     Frechet distance, swept error area (2-D only) and final distance of the reproductions from
     the demonstrations' starts.
 
     Both in user units and in the paper's scale (positions relative to the target divided by
     the largest distance of a demonstrated position from the target, velocities by the
-    largest demonstrated speed), which makes them comparable with the paper's Fig. 4.
+    largest demonstrated speed), which makes them comparable with the paper's Fig. 4. The
+    path metrics compare positions; in a space with further error components (a pose's
+    angle, radians) each also gets its mean error along the DTW-aligned path
+    (``angle_error_along``) and its largest error at the end (``final_angle_error``), and
+    each further velocity block its MSE (``angular_velocity_mse``).
 
     Arguments:
         policy: The policy, in float64.
-        demos: All demonstrations of the task.
+        demos: All demonstrations of the task (poses for a pose policy).
         split: The train / test split (test samples for MSE; held-out demos for DTW).
     """
+    space = policy.space
     test = split.test()
     has_test = any(mask.any() for mask in test)
     masks = test if has_test else split.train
-    positions = np.concatenate([d.positions[m] for d, m in zip(demos, masks)])
-    velocities = np.concatenate([d.velocities[m] for d, m in zip(demos, masks)])
-    predicted = policy.predict(positions)
+    states = np.concatenate([d.states[m] for d, m in zip(demos, masks)])
+    demonstrated = np.concatenate([d.velocities[m] for d, m in zip(demos, masks)])
+    predicted = policy.predict(states)
+    blocks = np.cumsum(space.velocity_sizes)[:-1]
+    predicted_blocks = np.split(predicted, blocks, axis=1)
+    demonstrated_blocks = np.split(demonstrated, blocks, axis=1)
+    predicted, velocities = predicted_blocks[0], demonstrated_blocks[0]
     mse = velocity_mse(predicted, velocities)
     speed, extent = demos.max_speed(), demos.extent()
+    target = np.asarray(demos.target)
     indices = evaluation_demos(split)
     paths = reproduce(policy, demos, indices)
     references = [path_reference(demos[i]) for i in indices]
-    dtws = [dtw(p, r) for p, r in zip(paths, references)]
-    frechets = [frechet(p, r) for p, r in zip(paths, references)]
+    positions = [space.positions(p) for p in paths]
+    reference_positions = [space.positions(r) for r in references]
+    pairs = list(zip(positions, reference_positions))
+    dtws = [dtw(p, r) for p, r in pairs]
+    frechets = [frechet(p, r) for p, r in pairs]
     # The swept error area is defined for planar motions only.
-    areas = (
-        [swept_error_area(p, r) for p, r in zip(paths, references)]
-        if demos.dim == 2
-        else [float("nan")]
-    )
-    return {
+    areas = [swept_error_area(p, r) for p, r in pairs] if space.position_dim == 2 else [np.nan]
+    record = {
         "frechet": float(np.mean(frechets)),
         "frechet_paper": float(np.mean(frechets) / extent),
         "swept_area": float(np.mean(areas)),
@@ -113,35 +141,34 @@ def accuracy(policy: Policy, demos: Demonstrations, split: Split) -> dict[str, f
         "velocity_mse_on": "test samples" if has_test else "training samples (no test split)",
         "dtw": float(np.mean(dtws)),
         "dtw_paper": float(np.mean(dtws) / extent),
-        "final_distance": float(max(final_distance(p, demos.target) for p in paths)),
+        "final_distance": float(max(final_distance(p, space.positions(target)) for p in positions)),
     }
+    for name, got, wanted in zip(
+        space.velocity_names[1:], predicted_blocks[1:], demonstrated_blocks[1:]
+    ):
+        record[f"{name}_mse"] = velocity_mse(got, wanted)
+    if len(space.error_names) > 1:
+        along = np.mean([_errors_along(space, p, r) for p, r in zip(paths, references)], axis=0)
+        ends = space.errors(torch.as_tensor(np.stack([p[-1] for p in paths])), torch.tensor(target))
+        worst = ends.max(dim=0).values.numpy()
+        for k, name in enumerate(space.error_names[1:], start=1):
+            record[f"{name}_error_along"] = float(along[k])
+            record[f"final_{name}_error"] = float(worst[k])
+    return record
 
 
 def evaluate(
-    policy: Policy,
-    demos: Demonstrations,
-    split: Split,
-    *,
-    seed: int = 0,
-    rollouts: int = ROLLOUTS,
-    samples: int = SAMPLES,
-    grid: bool = False,
+    policy: Policy, demos: Any, split: Split, *, check: CheckConfig = CheckConfig()
 ) -> dict:
     """Accuracy and the stability report, as one JSON-ready record.
 
     Arguments:
         policy: The policy (not modified; evaluated in float64).
-        demos: All demonstrations of the task.
+        demos: All demonstrations of the task, in the policy's space.
         split: The train / test split.
-        seed: Seed of the stability check's random starts and samples.
-        rollouts: Random starts of the stability check.
-        samples: States of the decrease-condition check.
-        grid: Start the stability rollouts from a regular grid instead of random states.
+        check: The stability check's settings (its seed, sizes, grid starts).
     """
     policy64 = float64_copy(policy)
     record = accuracy(policy64, demos, split)
-    report = check_stability(
-        policy64, demos, rollouts=rollouts, samples=samples, seed=seed, grid=grid
-    )
-    record["stability"] = report.to_dict()
+    record["stability"] = check_stability(policy64, demos, check).to_dict()
     return record

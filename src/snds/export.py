@@ -2,9 +2,9 @@ r"""Export of a policy for a real-time controller, and the check that it compute
 
 The exported graph is the policy's own ``forward``: user positions in, user velocities out,
 with the Lyapunov gradient written analytically (:meth:`snds.nn.Lyapunov.value_and_grad`),
-so no autograd is needed or traced. For an SE(3) :class:`~snds.se3.PosePolicy` it is the
-pose-level map :meth:`~snds.se3.PosePolicy.twist`: a pose (x, y, z, qx, qy, qz, qw; user
-units and a unit quaternion) in, the twist (linear velocity in user units per second, then
+so no autograd is needed or traced. For an SE(3) :class:`~snds.se3.PosePolicy` (space
+:class:`~snds.spaces.SE3`) a state is a pose (x, y, z, qx, qy, qz, qw; user units and a unit
+quaternion), and the output the twist (linear velocity in user units per second, then
 the world-frame angular velocity in rad/s) out, with the log map of the orientation and the
 left Jacobian of SO(3) in the graph, so a controller needs no quaternion maths of its own.
 What each kind takes and returns, and how its check samples it, is its :class:`Signature`.
@@ -44,6 +44,8 @@ from snds.nn.lyapunov import Lyapunov, WarpedLyapunov
 from snds.nn.mlp import FourierFeatures
 from snds.policy import Policy, StablePolicy, project
 from snds.se3 import PosePolicy
+from snds.so3 import random_quaternions
+from snds.spaces import SE3, Euclidean, Space
 
 #: Largest accepted difference from the library evaluated in the export's precision,
 #: relative to max(|velocity|, top speed) of each state. float64 graphs agree to rounding
@@ -421,14 +423,14 @@ def _quiet_exporter() -> Iterator[None]:
 
 class _PoseExported(torch.nn.Module):
     """The traced module of a pose policy: poses (B, 7) to twists (B, 6), the library's own
-    :meth:`~snds.se3.PosePolicy.twist`, in a fixed precision and in eval mode."""
+    ``forward``, in a fixed precision and in eval mode."""
 
     def __init__(self, policy: PosePolicy, dtype: torch.dtype) -> None:
         super().__init__()
         self.policy = _copy(policy, dtype)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.policy.twist(x[..., :3], x[..., 3:])
+        return self.policy(x)
 
 
 class Signature:
@@ -485,7 +487,7 @@ class Signature:
 
 class PoseSignature(Signature):
     r"""What the exported graph of a pose policy computes: poses (B, 7) to twists (B, 6)
-    (:meth:`~snds.se3.PosePolicy.twist`); and the random poses that check it.
+    (the policy's ``forward``); and the random poses that check it.
 
     The twist's linear and angular blocks are in different units; the check compares them in
     the policy's scaled units (divided by :math:`L_p` and :math:`L_r`), where the top speed
@@ -505,9 +507,6 @@ class PoseSignature(Signature):
     def module(self, dtype: torch.dtype) -> torch.nn.Module:
         return _PoseExported(self.policy, dtype)
 
-    def library(self, x: torch.Tensor) -> torch.Tensor:
-        return _copy(self.policy, x.dtype).twist(x[..., :3], x[..., 3:])
-
     def random_inputs(self, count: int, rng: np.random.Generator) -> np.ndarray:
         """Positions in boxes of :data:`STATE_RADII` position extents :math:`L_p` around the
         target, orientations uniform on SO(3) (normalised 4-D Gaussians), (count, 7)."""
@@ -515,8 +514,7 @@ class PoseSignature(Signature):
         positions = np.asarray(config.target_position) + config.position_scale * _spread(
             count, 3, rng
         )
-        quats = rng.standard_normal((count, 4))
-        return np.concatenate([positions, quats / np.linalg.norm(quats, axis=1, keepdims=True)], 1)
+        return np.concatenate([positions, random_quaternions(count, rng)], 1)
 
     def extents(self, x: np.ndarray) -> np.ndarray:
         config = self.policy.config
@@ -545,9 +543,13 @@ class PoseSignature(Signature):
         }
 
 
+#: The :class:`Signature` of each state space's exports.
+SIGNATURES: dict[type[Space], type[Signature]] = {Euclidean: Signature, SE3: PoseSignature}
+
+
 def signature(policy: Policy) -> Signature:
-    """The :class:`Signature` of a policy's export, chosen from its type: poses or positions."""
-    return PoseSignature(policy) if isinstance(policy, PosePolicy) else Signature(policy)
+    """The :class:`Signature` of a policy's export, chosen from its space."""
+    return SIGNATURES[type(policy.space)](policy)
 
 
 def _spread(count: int, dim: int, rng: np.random.Generator) -> np.ndarray:

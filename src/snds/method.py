@@ -12,13 +12,13 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
 
+from snds.batched import fit_many
 from snds.data.demonstrations import Demonstrations, Normalization, Split
+from snds.data.poses import PoseDemonstrations
 from snds.policy import Policy, PolicyConfig, StablePolicy
-
-if TYPE_CHECKING:
-    from snds.train import TrainConfig, TrainResult
+from snds.se3 import make_pose_policy
+from snds.train import TrainConfig, TrainResult, fit
 
 
 @dataclass(frozen=True)
@@ -82,8 +82,6 @@ def train_network(
 ) -> Fitted:
     """Trains a network policy with :func:`snds.train.fit` and records how (for any method
     whose policy is trained by gradient descent on the velocity loss: SNDS, BC, SDS-EF)."""
-    from snds.train import fit
-
     result = fit(policy, demos, split, config, progress=progress)
     return Fitted(policy=policy, seconds=result.seconds, record=_record(config, result))
 
@@ -98,6 +96,32 @@ def _record(config: TrainConfig, result: TrainResult) -> dict:
             "stopped": result.stopped,
         },
     }
+
+
+def _position_policy(demos: Demonstrations, *, config: PolicyConfig, seed: int) -> StablePolicy:
+    return StablePolicy(
+        dim=demos.dim, normalization=Normalization.fit(demos), config=config, seed=seed
+    )
+
+
+#: How a fresh network policy is made for each kind of demonstrations: positions, or poses
+#: (:func:`snds.se3.make_pose_policy`).
+POLICY_FOR_DATA = {Demonstrations: _position_policy, PoseDemonstrations: make_pose_policy}
+
+
+def make_policy(
+    demos: Demonstrations | PoseDemonstrations, *, config: PolicyConfig, seed: int = 0
+) -> StablePolicy:
+    """A fresh stable (or, with ``config.stable`` False, unconstrained) network policy for
+    ``demos``, in their space: a :class:`~snds.policy.StablePolicy` for positions, a
+    :class:`~snds.se3.PosePolicy` for poses.
+
+    Arguments:
+        demos: The demonstrations (they fix the normalisation, and for poses the chart).
+        config: The architecture.
+        seed: Seed of the initial weights.
+    """
+    return POLICY_FOR_DATA[type(demos)](demos, config=config, seed=seed)
 
 
 @dataclass(frozen=True)
@@ -139,8 +163,6 @@ class NeuralMethod(Method):
         rounding. Each :attr:`Fitted.seconds` is its share, the stacked fit's wall time over
         the number of fits; the record holds that number as ``batched``.
         """
-        from snds.batched import fit_many
-
         setups = [self._setup(d, seed, steps) for d, seed in zip(demos, seeds, strict=True)]
         policies, configs = [p for p, _ in setups], [c for _, c in setups]
         results = fit_many(policies, demos, splits, configs, progress=progress)
@@ -157,13 +179,5 @@ class NeuralMethod(Method):
         self, demos: Demonstrations, seed: int, steps: int | None
     ) -> tuple[StablePolicy, TrainConfig]:
         """The untrained policy and the training settings of a fit."""
-        from snds.train import TrainConfig
-
         config = TrainConfig(seed=seed) if steps is None else TrainConfig(seed=seed, steps=steps)
-        policy = StablePolicy(
-            dim=demos.dim,
-            normalization=Normalization.fit(demos),
-            config=self.policy_config,
-            seed=seed,
-        )
-        return policy, config
+        return make_policy(demos, config=self.policy_config, seed=seed), config

@@ -14,6 +14,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import matplotlib
 import numpy as np
@@ -23,6 +24,7 @@ from matplotlib.figure import Figure
 
 from snds.data.demonstrations import Demonstrations
 from snds.io import atomic_write
+from snds.obstacles import ModulatedPolicy, rollout_numpy_avoiding
 from snds.policy import Policy
 from snds.rollout import rollout_numpy
 
@@ -329,69 +331,85 @@ def plot_rollout_lyapunov(
 
 def plot_all(
     policy: Policy,
-    demos: Demonstrations,
+    demos: Any,
     out_dir: str | Path,
     *,
     history: list[float] | None = None,
     seed: int = 0,
 ) -> list[Path]:
-    """Rolls the policy out from the demonstrations' starts and from perturbed starts, and
-    writes every plot that applies into ``out_dir``.
+    """Rolls the policy out along its space from the demonstrations' starts and from perturbed
+    starts, and writes every plot that applies into ``out_dir``.
 
-    Perturbed starts are each demonstration's start moved by up to 30 % of the extent in every
-    coordinate, plus 6 uniform starts in the demonstrations' bounding box enlarged 1.5 times.
+    Perturbed starts are each demonstration's start with its position moved by up to 30 % of
+    the extent in every coordinate, plus 6 starts with positions uniform in the
+    demonstrations' bounding box enlarged 1.5 times (and, for poses, orientations uniform on
+    SO(3)).
 
     Arguments:
         policy: The policy, float64 and in eval mode.
-        demos: The demonstrations.
+        demos: The demonstrations (poses for a pose policy).
         out_dir: Folder of the PNGs (created if missing).
         history: Training loss per step; ``loss.png`` is written when given.
         seed: Seed of the perturbations.
 
     Returns:
-        The paths written: ``streamlines.png``, then ``lyapunov.png`` and
-        ``rollout_lyapunov.png`` for a stable policy, ``paths3d.png`` for a 3-D task, then
-        ``loss.png``.
+        The paths written: for a position policy ``streamlines.png``, then ``lyapunov.png``;
+        ``rollout_lyapunov.png`` for a stable policy; ``paths3d.png`` when positions are 3-D
+        (with orientation frames for poses); then ``loss.png``.
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    space = policy.space
+    p = space.position_dim
     rng = np.random.default_rng(seed)
     dt = demos.mean_dt()
     steps = int(1.5 * demos.max_duration() / dt)
-    starts = np.stack([demo.positions[0] for demo in demos])
+    starts = np.stack([demo.states[0] for demo in demos])
     extent = demos.extent()
-    low, high = _box(demos.positions(), demos.target, scale=1.5)
-    perturbed_starts = np.concatenate(
-        [
-            starts + rng.uniform(-0.3, 0.3, size=starts.shape) * extent,
-            rng.uniform(low, high, size=(6, demos.dim)),
-        ]
-    )
+    low, high = _box(demos.positions(), space.positions(np.asarray(demos.target)), scale=1.5)
+    moved = starts.copy()
+    moved[:, :p] += rng.uniform(-0.3, 0.3, size=(len(starts), p)) * extent
+    spread = space.uniform(np.asarray(demos.target), 0.0, 6, rng)
+    spread[:, :p] = rng.uniform(low, high, size=(6, p))
+    perturbed_starts = np.concatenate([moved, spread])
     # One batch for both sets of starts: a step costs about the same for 7 states as for 20.
     both = rollout_numpy(policy, np.concatenate([starts, perturbed_starts]), dt=dt, steps=steps)
     rollouts, perturbed = both[: len(starts)], both[len(starts) :]
 
-    paths = [
-        plot_streamlines(
-            policy, demos, out / "streamlines.png", rollouts=rollouts, perturbed=perturbed
+    paths = []
+    positions_only = space.dim == p
+    if positions_only:
+        paths.append(
+            plot_streamlines(
+                policy, demos, out / "streamlines.png", rollouts=rollouts, perturbed=perturbed
+            )
         )
-    ]
     if policy.stable:
-        paths.append(plot_lyapunov(policy, demos, out / "lyapunov.png"))
+        if positions_only:
+            paths.append(plot_lyapunov(policy, demos, out / "lyapunov.png"))
         paths.append(
             plot_rollout_lyapunov(
                 policy, rollouts, dt, out / "rollout_lyapunov.png", perturbed=perturbed
             )
         )
-    if demos.dim == 3:
+    if p == 3:
+        orientations = (
+            {}
+            if positions_only
+            else {
+                "demo_orientations": [demo.states[:, p:] for demo in demos],
+                "rollout_orientations": [r[:, p:] for r in rollouts],
+            }
+        )
         paths.append(
             plot_paths_3d(
                 [demo.positions for demo in demos],
-                list(rollouts),
-                demos.target,
+                [r[:, :p] for r in rollouts],
+                space.positions(np.asarray(demos.target)),
                 out / "paths3d.png",
-                perturbed=list(perturbed),
+                perturbed=[r[:, :p] for r in perturbed],
                 title=_name(demos, policy),
+                **orientations,
             )
         )
     if history:
@@ -429,7 +447,6 @@ def plot_obstacles(
     Returns:
         The path written.
     """
-    from snds.obstacles import ModulatedPolicy, rollout_numpy_avoiding
 
     (x1, x2), points = _plane(demos)
     rng = np.random.default_rng(seed)
@@ -609,7 +626,7 @@ def _plane(
 
 @torch.no_grad()
 def _lyapunov(policy: Policy, points: np.ndarray) -> np.ndarray:
-    """V at user positions (N, n), in model units."""
+    """V at user states (N, space.dim), in model units."""
     param = next(policy.parameters())
     x = torch.as_tensor(points, dtype=param.dtype, device=param.device)
     v, _ = policy.lyapunov.value_and_grad(policy.to_model(x))

@@ -20,6 +20,7 @@ from torch import Tensor, nn
 from snds.data.demonstrations import Normalization
 from snds.errors import ConfigError
 from snds.nn import MLP, EuclideanizingFlow, Lyapunov, WarpedLyapunov
+from snds.spaces import Euclidean, Space
 
 #: Coupling layers of V's warp when :attr:`PolicyConfig.warp_layers` is None and n >= 2.
 DEFAULT_WARP_LAYERS = 6
@@ -178,9 +179,11 @@ class LyapunovFunction(Protocol):
 class Policy(nn.Module, ABC):
     r"""A velocity field in user units, computed in the task's model coordinates.
 
-    Model coordinates put the target at 0 with extent 1 and top speed 1 (see
-    :class:`~snds.data.Normalization`); :meth:`forward` maps user positions there, evaluates
-    :meth:`field` and maps the velocities back. A subclass implements :meth:`field`; one
+    States live in :attr:`space` (positions in :math:`\mathbb{R}^n` by default; poses for
+    :class:`~snds.se3.PosePolicy`). Model coordinates put the target at 0 with extent 1 and
+    top speed 1 (see :class:`~snds.data.Normalization`); :meth:`forward` maps user states
+    there (:meth:`to_model`), evaluates :meth:`field` and maps the velocities back
+    (:meth:`velocity_to_user`). A subclass implements :meth:`field`; one
     with a stability guarantee sets :attr:`lyapunov` to its Lyapunov function and
     :attr:`stable` to True, and states its guarantee, which the stability checks test:
     :math:`\nabla V^\top \pi \le -a(x)` with :meth:`decay` :math:`a \ge 0`.
@@ -190,7 +193,7 @@ class Policy(nn.Module, ABC):
     dict: ``cls(dim=..., normalization=..., config=...)`` must rebuild every tensor shape.
 
     Arguments:
-        dim: State dimension n.
+        dim: Dimension n of the model coordinates (the state dimension for positions).
         normalization: The task's affine map of space and time.
     """
 
@@ -215,6 +218,11 @@ class Policy(nn.Module, ABC):
     def method(self) -> str:
         """The name of the method that made it (a key of :data:`snds.methods.METHODS`)."""
         return self.kind
+
+    @property
+    def space(self) -> Space:
+        r"""The space of the states :meth:`forward` takes: :math:`\mathbb{R}^n` by default."""
+        return Euclidean(self.dim)
 
     @property
     def stable(self) -> bool:
@@ -247,13 +255,31 @@ class Policy(nn.Module, ABC):
         return torch.zeros_like(v)
 
     def to_model(self, x: Tensor) -> Tensor:
-        """User positions (*, n) to model coordinates."""
+        """User states (*, space.dim) to model coordinates (*, n)."""
         return (x - self.center.to(x.dtype)) / self.length
 
-    def forward(self, x: Tensor) -> Tensor:
-        """Velocities (*, n) in user units at positions (*, n) in user units.
+    def model_scale(self) -> np.ndarray:
+        """How far one unit of model coordinates reaches in each error component of
+        :attr:`space` (:meth:`~snds.spaces.Space.errors`), user units, shape (k,): a state
+        within model distance r of the target is within r times this of it."""
+        return np.array([self.length])
 
-        The policy computes in its own precision (that of its weights); positions of another
+    def velocity_to_user(self, x: Tensor, velocity: Tensor) -> Tensor:
+        """Model velocities (*, n) at user states x (*, space.dim) to user velocities
+        (*, space.tangent_dim)."""
+        return velocity * (self.length / self.time)
+
+    def training_demonstrations(self, demos: Any) -> Any:
+        """The demonstrations in the coordinates that :attr:`normalization` maps to model
+        coordinates, as :func:`snds.train.fit` trains on them: ``demos`` themselves for
+        positions."""
+        return demos
+
+    def forward(self, x: Tensor) -> Tensor:
+        """Velocities (*, space.tangent_dim) in user units at states (*, space.dim) in user
+        units.
+
+        The policy computes in its own precision (that of its weights); states of another
         dtype (float32 into a float64 model, integers, ...) are cast to it, so the velocities
         are in the model's precision.
         """
@@ -261,21 +287,23 @@ class Policy(nn.Module, ABC):
         # A Python-level test, so an export traced in the model's dtype holds no Cast node.
         if x.dtype != dtype:
             x = x.to(dtype)
-        return self.field(self.to_model(x)) * (self.length / self.time)
+        return self.velocity_to_user(x, self.field(self.to_model(x)))
 
     @torch.no_grad()
     def predict(self, x: np.ndarray, *, chunk: int = 65_536) -> np.ndarray:
-        """NumPy convenience: velocities at positions (*, n), both in user units, evaluated
-        ``chunk`` states at a time (bounds the memory of the networks' activations)."""
+        """NumPy convenience: velocities (*, space.tangent_dim) at states (*, space.dim), both
+        in user units, evaluated ``chunk`` states at a time (bounds the memory of the
+        networks' activations)."""
         dtype, device = self.center.dtype, self.center.device
         array = np.asarray(x)
         flat = array.reshape(-1, array.shape[-1])
-        out = np.empty(flat.shape, dtype=torch.empty(0, dtype=dtype).numpy().dtype)
+        width = self.space.tangent_dim
+        out = np.empty((len(flat), width), dtype=torch.empty(0, dtype=dtype).numpy().dtype)
         for begin in range(0, len(flat), chunk):
             # A copy: demonstrations' arrays are read-only, which torch.as_tensor warns about.
             rows = torch.tensor(flat[begin : begin + chunk], dtype=dtype, device=device)
             out[begin : begin + chunk] = self(rows).cpu().numpy()
-        return out.reshape(array.shape)
+        return out.reshape(*array.shape[:-1], width)
 
 
 class StablePolicy(Policy):

@@ -14,45 +14,6 @@ from snds.policy import Policy
 Field = Callable[[Tensor], Tensor]
 
 
-def _euler(field: Field, x: Tensor, dt: float) -> Tensor:
-    return x + dt * field(x)
-
-
-def _rk4(field: Field, x: Tensor, dt: float) -> Tensor:
-    k1 = field(x)
-    k2 = field(x + 0.5 * dt * k1)
-    k3 = field(x + 0.5 * dt * k2)
-    k4 = field(x + dt * k3)
-    return x + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
-
-
-#: Fixed-step integrators, each mapping (field, x, dt) to the next state.
-INTEGRATORS: dict[str, Callable[[Field, Tensor, float], Tensor]] = {"euler": _euler, "rk4": _rk4}
-
-
-@torch.no_grad()
-def rollout(field: Field, x0: Tensor, *, dt: float, steps: int, method: str = "euler") -> Tensor:
-    """Integrates :math:`\\dot x = \\pi(x)` from a batch of starts with a fixed step.
-
-    Arguments:
-        field: The velocity field, (B, n) -> (B, n).
-        x0: Start states, shape (B, n).
-        dt: Time step.
-        steps: Number of steps.
-        method: A key of :data:`INTEGRATORS`.
-
-    Returns:
-        The states, shape (steps + 1, B, n), starting with ``x0``.
-    """
-    step = INTEGRATORS[method]
-    states = [x0]
-    x = x0
-    for _ in range(steps):
-        x = step(field, x, dt)
-        states.append(x)
-    return torch.stack(states)
-
-
 Lyapunov = Callable[[Tensor], Tensor]
 #: The promised decrease rate of V per unit time at states (B, n) with values (B,).
 Rate = Callable[[Tensor, Tensor], Tensor]
@@ -62,6 +23,60 @@ Advance = Callable[[Tensor, Tensor, Tensor], Tensor]
 
 def _euler_advance(x: Tensor, h: Tensor, velocity: Tensor) -> Tensor:
     return x + h.unsqueeze(-1) * velocity
+
+
+def _euler(field: Field, x: Tensor, dt: float, advance: Advance) -> Tensor:
+    return advance(x, torch.full_like(x[..., 0], dt), field(x))
+
+
+def _rk4(field: Field, x: Tensor, dt: float, advance: Advance) -> Tensor:
+    if advance is not _euler_advance:
+        raise ValueError("rk4 integrates states in R^n only; use euler on other spaces")
+    k1 = field(x)
+    k2 = field(x + 0.5 * dt * k1)
+    k3 = field(x + 0.5 * dt * k2)
+    k4 = field(x + dt * k3)
+    return x + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+
+
+#: Fixed-step integrators, each mapping (field, x, dt, advance) to the next state.
+INTEGRATORS: dict[str, Callable[[Field, Tensor, float, Advance], Tensor]] = {
+    "euler": _euler,
+    "rk4": _rk4,
+}
+
+
+@torch.no_grad()
+def rollout(
+    field: Field,
+    x0: Tensor,
+    *,
+    dt: float,
+    steps: int,
+    method: str = "euler",
+    advance: Advance = _euler_advance,
+) -> Tensor:
+    """Integrates :math:`\\dot x = \\pi(x)` from a batch of starts with a fixed step.
+
+    Arguments:
+        field: The velocity field, (B, m) -> (B, k).
+        x0: Start states, shape (B, m).
+        dt: Time step.
+        steps: Number of steps.
+        method: A key of :data:`INTEGRATORS` ("rk4" in R^n only).
+        advance: How a state moves along a velocity (a space's
+            :meth:`~snds.spaces.Space.advance`); by default :math:`x + h v`.
+
+    Returns:
+        The states, shape (steps + 1, B, m), starting with ``x0``.
+    """
+    step = INTEGRATORS[method]
+    states = [x0]
+    x = x0
+    for _ in range(steps):
+        x = step(field, x, dt, advance)
+        states.append(x)
+    return torch.stack(states)
 
 
 @torch.no_grad()
@@ -158,6 +173,7 @@ def guarded_rollout(
     steps: int,
     rate: Rate | None = None,
     max_halvings: int = 30,
+    advance: Advance = _euler_advance,
 ) -> GuardedRollout:
     """Rollouts of :func:`guarded_step`: every discrete step decreases V.
 
@@ -169,12 +185,20 @@ def guarded_rollout(
         steps: Number of steps.
         rate: The promised decrease rate (see :func:`guarded_step`); None: V must only drop.
         max_halvings: Give up shortening after this many halvings (then the step is taken).
+        advance: How a state moves along a velocity (see :func:`guarded_step`).
     """
     x, value = x0, None
     states, taken = [x0], []
     for _ in range(steps):
         x, h, value = guarded_step(
-            field, lyapunov, x, dt=dt, rate=rate, max_halvings=max_halvings, value=value
+            field,
+            lyapunov,
+            x,
+            dt=dt,
+            rate=rate,
+            max_halvings=max_halvings,
+            value=value,
+            advance=advance,
         )
         states.append(x)
         taken.append(h)
@@ -198,6 +222,30 @@ def policy_guard(policy: Policy) -> tuple[Lyapunov, Rate]:
     return lyapunov, rate
 
 
+@torch.no_grad()
+def safe_velocity(policy: Policy, x: Tensor, dt: float) -> tuple[Tensor, Tensor]:
+    """The policy's velocities at states x (B, space.dim), each scaled by h / dt for the
+    guarded step h <= dt along its space (:func:`guarded_step`).
+
+    A controller that holds a velocity for one period dt moves the state by about
+    ``policy.space.advance(x, dt, velocity)``; scaled so, that step meets the guard's
+    sufficient-decrease condition, and a stiff field cannot make a robot chatter on a
+    discrete cycle at constant V. A policy without V keeps its velocities (h = dt).
+
+    Returns:
+        The scaled velocities, shape (B, space.tangent_dim), and h, shape (B,).
+    """
+    velocity = policy(x)
+    h = torch.full_like(velocity[:, 0], dt)
+    if policy.stable:
+        lyapunov, rate = policy_guard(policy)
+        # The velocity is evaluated once: the guarded step only asks for it at x.
+        _, h, _ = guarded_step(
+            lambda _: velocity, lyapunov, x, dt=dt, rate=rate, advance=policy.space.advance
+        )
+    return velocity * (h / dt).unsqueeze(-1), h
+
+
 def converged_at(states: Tensor, target: Tensor, tolerance: float) -> Tensor:
     """First step index from which each rollout stays within ``tolerance`` of the target.
 
@@ -219,7 +267,7 @@ def converged_at(states: Tensor, target: Tensor, tolerance: float) -> Tensor:
 
 
 def rollout_numpy(
-    policy: torch.nn.Module,
+    policy: Policy,
     x0: np.ndarray,
     *,
     dt: float,
@@ -227,19 +275,20 @@ def rollout_numpy(
     method: str = "euler",
     dtype: torch.dtype = torch.float64,
 ) -> np.ndarray:
-    """NumPy convenience: rollouts of a policy in user units.
+    """NumPy convenience: rollouts of a policy in user units, along its space.
 
     Arguments:
-        policy: A module mapping positions (B, n) to velocities (B, n), user units.
-        x0: Start positions, shape (B, n).
+        policy: The policy (evaluated in ``dtype`` if it is in that precision already; a
+            float64 copy is the caller's choice).
+        x0: Start states, shape (B, space.dim).
         dt: Time step in seconds.
         steps: Number of steps.
         method: A key of :data:`INTEGRATORS`.
         dtype: Precision of the integration.
 
     Returns:
-        The rollouts, shape (B, steps + 1, n).
+        The rollouts, shape (B, steps + 1, space.dim).
     """
     x = torch.tensor(np.asarray(x0, dtype=np.float64), dtype=dtype)
-    states = rollout(policy, x, dt=dt, steps=steps, method=method)
+    states = rollout(policy, x, dt=dt, steps=steps, method=method, advance=policy.space.advance)
     return states.transpose(0, 1).cpu().numpy()

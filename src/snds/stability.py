@@ -8,11 +8,12 @@ rolls the policy out from random starts far from the demonstrations.
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
+from typing import Any
 
 import numpy as np
 import torch
 
-from snds.data.demonstrations import Demonstrations
+from snds.errors import ConfigError
 from snds.policy import Policy, float64_copy
 from snds.rollout import guarded_step, policy_guard
 
@@ -25,6 +26,49 @@ ROLLOUTS = 500
 SAMPLES = 50_000
 
 
+@dataclass(frozen=True, kw_only=True)
+class CheckConfig:
+    """The settings of :func:`check_stability`, with the library's defaults.
+
+    Attributes:
+        rollouts: Random starts (with ``grid``, at least this many grid points).
+        samples: Random states of the decrease check (0 to skip it).
+        grid: Start from a regular grid of positions over the box (k points per axis,
+            k^n >= rollouts, corners included) instead of uniform random states.
+        box_factor: Half-width of the box of starts, in extents.
+        horizon_factor: Rollout duration, in longest-demonstration durations.
+        tolerance_factor: Arrival tolerance, in error scales (the extent for positions; pi
+            radians for angles).
+        sample_box_factor: Half-width of the decrease samples' box, in extents.
+        step_tolerance_factor: Local error allowed per adaptive step, in extents.
+        seed: Seed of the random starts and samples.
+        chunk: States per batch of the decrease check (bounds memory).
+        max_halvings: Halvings of a guarded step before it is taken anyway.
+    """
+
+    rollouts: int = ROLLOUTS
+    samples: int = SAMPLES
+    grid: bool = False
+    box_factor: float = 3.0
+    horizon_factor: float = 10.0
+    tolerance_factor: float = 0.01
+    sample_box_factor: float = 10.0
+    step_tolerance_factor: float = 3e-3
+    seed: int = 0
+    chunk: int = 20_000
+    max_halvings: int = 30
+
+    def __post_init__(self) -> None:
+        if self.rollouts < 1:
+            raise ConfigError(f"rollouts must be >= 1, got {self.rollouts}")
+        if self.samples < 0:
+            raise ConfigError(f"samples must be >= 0, got {self.samples}")
+
+    def to_dict(self) -> dict:
+        """JSON-ready form."""
+        return asdict(self)
+
+
 @dataclass(frozen=True)
 class StabilityReport:
     """Outcome of :func:`check_stability`.
@@ -32,8 +76,11 @@ class StabilityReport:
     Attributes:
         rollouts: Number of rollouts from random starts.
         converged_fraction: Fraction that ended within the tolerance of the target.
-        max_final_distance: Largest distance of a rollout's end from the target (user units);
-            a settled rollout (see :func:`_roll_out_and_settle`) ends where it settled.
+        max_final_distance: Largest distance of a rollout's end position from the target's
+            (user units); a settled rollout (see :func:`_roll_out_and_settle`) ends where it
+            settled.
+        max_final_errors: The largest end error of each component of the policy's space
+            (:meth:`snds.spaces.Space.errors`: "distance", and "angle" in radians for poses).
         spurious_attractors: Places where rollouts stopped away from the target: end points
             outside the tolerance where the policy's speed is below 1e-3 of the fastest
             demonstrated speed, clustered within 5% of the extent; each {"center", "count"},
@@ -54,15 +101,20 @@ class StabilityReport:
             :func:`snds.rollout.guarded_step`), else "euler".
         shortened_fraction: Fraction of rollouts in which the guard shortened a step, i.e.
             where plain Euler at ``dt`` would not have decreased V (0 without a guard).
+        v_rises: Accepted steps at which V rose even after the guard's halvings (0 for a
+            policy without V): the discrete decrease along the rollouts, as the robot moves.
         box: Half-width of the box of random starts, in user units.
         horizon: Duration of each rollout, in seconds.
         dt: Time step of the rollouts, in seconds.
         tolerance: Distance counted as arrived, in user units.
+        tolerances: The arrival tolerance of each error component (a rollout has converged
+            when it is within all of them).
     """
 
     rollouts: int
     converged_fraction: float
     max_final_distance: float
+    max_final_errors: dict
     spurious_attractors: list
     still_moving: int
     median_time_to_converge: float
@@ -72,27 +124,16 @@ class StabilityReport:
     largest_safe_dt_on_rollouts: float
     integrator: str
     shortened_fraction: float
+    v_rises: int
     box: float
     horizon: float
     dt: float
     tolerance: float
+    tolerances: dict
 
     def to_dict(self) -> dict:
         """JSON-ready form."""
         return asdict(self)
-
-
-def _grid_box(center: np.ndarray, half_width: float, count: int) -> np.ndarray:
-    per_axis = max(2, int(np.ceil(count ** (1.0 / center.shape[0]) - 1e-9)))
-    axis = np.linspace(-half_width, half_width, per_axis)
-    mesh = np.meshgrid(*([axis] * center.shape[0]), indexing="ij")
-    return center + np.stack([m.ravel() for m in mesh], axis=-1)
-
-
-def _uniform_box(
-    center: np.ndarray, half_width: float, count: int, rng: np.random.Generator
-) -> np.ndarray:
-    return center + rng.uniform(-half_width, half_width, size=(count, center.shape[0]))
 
 
 @torch.no_grad()
@@ -178,98 +219,80 @@ def largest_safe_step(
 
 @torch.no_grad()
 def check_stability(
-    policy: Policy,
-    demos: Demonstrations,
-    *,
-    rollouts: int = ROLLOUTS,
-    grid: bool = False,
-    box_factor: float = 3.0,
-    horizon_factor: float = 10.0,
-    tolerance_factor: float = 0.01,
-    samples: int = SAMPLES,
-    sample_box_factor: float = 10.0,
-    step_tolerance_factor: float = 3e-3,
-    seed: int = 0,
-    chunk: int = 20_000,
+    policy: Policy, demos: Any, config: CheckConfig = CheckConfig()
 ) -> StabilityReport:
     """Rolls out from random starts and checks the decrease condition on a dense sample.
 
-    Rollouts start uniformly in a box of half-width ``box_factor`` x the extent (the largest
-    distance of a demonstrated position from the target) around the target, and run for
-    ``horizon_factor`` x the longest demonstration's duration with Euler steps of the
-    demonstrations' mean time step, guarded (see :func:`snds.rollout.guarded_step`) for a
-    policy with a Lyapunov function; the report says in how many rollouts the guard had to
-    shorten a step, and the largest step that is safe along the rollouts. A rollout has
-    converged if it ends within ``tolerance_factor`` x the extent of the target: the robot
-    must get there in useful time, not only asymptotically. Rollouts of a policy with a
-    Lyapunov function stop early once they are provably settled (see
-    :func:`_roll_out_and_settle`). Everything runs in float64.
+    One check for every state space (the policy's :attr:`~snds.policy.Policy.space`):
+    rollouts start in a box of half-width ``box_factor`` x the extent (the largest distance
+    of a demonstrated position from the target) around the target, with orientations uniform
+    over all of SO(3) for poses, and run for ``horizon_factor`` x the longest
+    demonstration's duration, adaptive Euler steps of at least the demonstrations' mean time
+    step along the space's :meth:`~snds.spaces.Space.advance`, guarded (see
+    :func:`snds.rollout.guarded_step`) for a policy with a Lyapunov function; the report
+    says in how many rollouts the guard had to shorten a step, and the largest step that is
+    safe along the rollouts. A rollout has converged if it ends within ``tolerance_factor``
+    x each error scale of the target (the extent; pi radians for an angle): the robot must
+    get there in useful time, not only asymptotically. Rollouts of a policy with a Lyapunov
+    function stop early once they are provably settled (see :func:`_roll_out_and_settle`).
+    Everything runs in float64.
 
     Arguments:
         policy: The policy (a copy is evaluated in float64; the original is not changed).
-        demos: The demonstrations that define the extent, time step and horizon.
-        rollouts: Number of random starts (with ``grid``, at least this many grid points).
-        grid: Start from a regular grid over the box (k points per axis, k^n >= rollouts)
-            instead of uniform random states; the grid includes the box's corners.
-        box_factor: Half-width of their box, in extents.
-        horizon_factor: Rollout duration, in longest-demonstration durations.
-        tolerance_factor: Arrival tolerance, in extents.
-        samples: Random states for the decrease check (0 to skip).
-        sample_box_factor: Half-width of their box, in extents.
-        seed: Seed of the random starts and samples.
-        chunk: States per batch in the decrease check (bounds memory).
+        demos: The demonstrations that define the extent, time step and horizon
+            (:class:`~snds.data.Demonstrations`, or :class:`~snds.data.PoseDemonstrations`
+            for a pose policy).
+        config: The check's sizes and factors.
     """
     policy = float64_copy(policy)
-    rng = np.random.default_rng(seed)
+    space = policy.space
+    rng = np.random.default_rng(config.seed)
     extent = demos.extent()
-    target = demos.target
+    target = np.asarray(demos.target, dtype=np.float64)
     dt = demos.mean_dt()
-    horizon = horizon_factor * demos.max_duration()
-    tolerance = tolerance_factor * extent
-    half_width = box_factor * extent
-    if grid:
-        points = _grid_box(target, half_width, rollouts)
-    else:
-        points = _uniform_box(target, half_width, rollouts, rng)
+    horizon = config.horizon_factor * demos.max_duration()
+    half_width = config.box_factor * extent
+    draw = space.grid if config.grid else space.uniform
+    points = draw(target, half_width, config.rollouts, rng)
     # On the policy's device (a policy trained with --device cuda is checked there too).
     device = getattr(policy, "center", torch.empty(0)).device
     starts = torch.as_tensor(points, device=device)
+    target_t = torch.tensor(target, device=device)
     arrivals = _roll_out_and_settle(
-        policy,
-        starts,
-        torch.tensor(target, device=device),
-        dt=dt,
-        horizon=horizon,
-        tolerance=tolerance,
-        step_tolerance=step_tolerance_factor * extent,
-        max_step=horizon / 50,
+        policy, starts, target_t, dt=dt, horizon=horizon, extent=extent, config=config
     )
-    final = arrivals.final_distance
-    attractors, moving = _stalled(
-        policy, arrivals.final_state[final > tolerance], speed=demos.max_speed(), extent=extent
-    )
+    tolerance = config.tolerance_factor
+    errors = arrivals.final_errors  # (B, k), in error scales
+    outside = (errors > tolerance).any(dim=-1) | ~torch.isfinite(errors).all(dim=-1)
+    attractors, moving = _stalled(policy, demos, arrivals.final_state[outside], extent=extent)
     times = arrivals.arrival_time[~arrivals.arrival_time.isnan()]
     violations, checked = 0, 0
     safe_dt = safe_dt_rollouts = float("nan")
     if policy.stable:
         upper = 10.0 * demos.max_duration()
         visited = arrivals.visited
-        if len(visited) > chunk:
-            pick = torch.as_tensor(rng.choice(len(visited), chunk, replace=False), device=device)
-            visited = visited[pick]
+        if len(visited) > config.chunk:
+            pick = rng.choice(len(visited), config.chunk, replace=False)
+            visited = visited[torch.as_tensor(pick, device=device)]
         safe_dt = safe_dt_rollouts = largest_safe_step(policy, visited, upper=upper)
-    if policy.stable and samples > 0:
-        points = _uniform_box(target, sample_box_factor * extent, samples, rng)
-        for begin in range(0, samples, chunk):
-            batch = torch.as_tensor(points[begin : begin + chunk], device=device)
+    if policy.stable and config.samples > 0:
+        points = space.uniform(target, config.sample_box_factor * extent, config.samples, rng)
+        for begin in range(0, config.samples, config.chunk):
+            batch = torch.as_tensor(points[begin : begin + config.chunk], device=device)
             violations += decrease_violations(policy, batch)
             safe_dt = min(safe_dt, largest_safe_step(policy, batch, upper=safe_dt))
-        checked = samples
-    finite = torch.isfinite(final)
+        checked = config.samples
+    scales = space.error_scales(extent)
+    finite = bool(torch.isfinite(errors).all())
+    largest = errors.max(dim=0).values.cpu().numpy() * scales
     return StabilityReport(
         rollouts=len(starts),
-        converged_fraction=float(((final <= tolerance) & finite).double().mean()),
-        max_final_distance=float(final.max()) if bool(finite.all()) else float("inf"),
+        converged_fraction=float((~outside).double().mean()),
+        max_final_distance=float(largest[0]) if finite else float("inf"),
+        max_final_errors={
+            name: float(value) if finite else float("inf")
+            for name, value in zip(space.error_names, largest)
+        },
         spurious_attractors=attractors,
         still_moving=moving,
         median_time_to_converge=float(times.median()) if len(times) else float("nan"),
@@ -279,27 +302,46 @@ def check_stability(
         largest_safe_dt_on_rollouts=safe_dt_rollouts,
         integrator="guarded euler" if policy.stable else "euler",
         shortened_fraction=float(arrivals.shortened.double().mean()),
-        box=box_factor * extent,
+        v_rises=arrivals.v_rises,
+        box=half_width,
         horizon=horizon,
         dt=dt,
-        tolerance=tolerance,
+        tolerance=float(tolerance * scales[0]),
+        tolerances={
+            name: float(tolerance * scale) for name, scale in zip(space.error_names, scales)
+        },
     )
 
 
+def _scaled_speed(space_scales: torch.Tensor, velocity: torch.Tensor) -> torch.Tensor:
+    """Speeds (B,) of velocities (B, k) with each component divided by its scale."""
+    return (velocity / space_scales).norm(dim=-1)
+
+
 def _stalled(
-    policy: Policy, ends: torch.Tensor, *, speed: float, extent: float
+    policy: Policy, demos: Any, ends: torch.Tensor, *, extent: float
 ) -> tuple[list[dict], int]:
-    """Clusters the end points that stalled (spurious attractors); counts those still moving."""
+    """Clusters the end points that stalled (spurious attractors); counts those still moving.
+
+    A state has stalled where the policy's speed, each component in its scale (see
+    :meth:`snds.spaces.Space.tangent_scales`), is below 1e-3 of the fastest demonstrated
+    one; end points within 5% of every error scale of each other form one cluster.
+    """
     if len(ends) == 0:
         return [], 0
+    space = policy.space
+    scales = torch.as_tensor(space.tangent_scales(extent), device=ends.device)
+    fastest = max(
+        float(_scaled_speed(scales.cpu(), torch.tensor(demo.velocities)).max()) for demo in demos
+    )
     finite = torch.isfinite(ends).all(dim=-1)
-    velocity = policy(ends[finite])
-    stalled = ends[finite][velocity.norm(dim=-1) < 1e-3 * speed]
+    speed = _scaled_speed(scales, policy(ends[finite]))
+    stalled = ends[finite][speed < 1e-3 * fastest]
     clusters: list[dict] = []
     # Greedy clustering: few points, and a cluster radius much smaller than the box.
     for point in stalled:
         for cluster in clusters:
-            if (point - cluster["center"]).norm() <= 0.05 * extent:
+            if bool((space.scaled_errors(point, cluster["center"], extent) <= 0.05).all()):
                 cluster["count"] += 1
                 break
         else:
@@ -343,12 +385,13 @@ def settle_level(lyapunov: torch.nn.Module, radius: float, *, dim: int, count: i
 
 @dataclass(frozen=True)
 class _Arrivals:
-    final_state: torch.Tensor  # (B, n)
-    final_distance: torch.Tensor  # (B,)
+    final_state: torch.Tensor  # (B, dim)
+    final_errors: torch.Tensor  # (B, k), in error scales
     arrival_time: torch.Tensor  # (B,), NaN if not within the tolerance at the end
     shortened: torch.Tensor  # (B,) bool: plain Euler at dt would not decrease V on the way
-    visited: torch.Tensor  # (M, n), states along the rollouts (every ``every`` steps)
+    visited: torch.Tensor  # (M, dim), states along the rollouts (every ``every`` steps)
     steps: int  # integration steps of the longest rollout
+    v_rises: int  # accepted steps at which V rose after every halving
 
 
 @torch.no_grad()
@@ -359,28 +402,30 @@ def _roll_out_and_settle(
     *,
     dt: float,
     horizon: float,
-    tolerance: float,
-    step_tolerance: float,
-    max_step: float,
+    extent: float,
+    config: CheckConfig,
     every: int = 10,
 ) -> _Arrivals:
     r"""Adaptive guarded Euler rollouts that stop integrating each start once it has settled.
 
-    Each rollout takes Euler steps whose length follows the local error: the estimate
+    Each rollout takes Euler steps along the policy's space (:meth:`~snds.spaces.Space.advance`)
+    whose length follows the local error: the estimate
     :math:`e = \tfrac{h}{2} |\pi(x_{k+1}) - \pi(x_k)|` (the leading term of Euler's local
-    error, from the velocity the next step needs anyway) is kept below ``step_tolerance``
-    (user units) by rejecting a step that exceeds it and by growing or shrinking the next one
+    error, from the velocity the next step needs anyway; each component in its scale,
+    :meth:`~snds.spaces.Space.tangent_scales`) is kept below ``step_tolerance_factor``
+    extents by rejecting a step that exceeds it and by growing or shrinking the next one
     as :math:`h \sqrt{\text{tol} / e}`, between the data's step ``dt`` (always accepted, so
-    the check is never slower than fixed steps of dt) and ``max_step``. Where the field
+    the check is never slower than fixed steps of dt) and horizon / 50. Where the field
     is smooth (far out, and on the final approach) steps grow far beyond the data's period; in
     the demonstrations' bends they stay near it; no step moves a state by more than 5% of
     its distance to the target, unless it is no longer than dt. A policy with a Lyapunov
-    function also takes
-    the guarded step (:func:`snds.rollout.guarded_step`, Armijo's condition on V), so V falls
-    at every accepted step. The sublevel set {V < c} of :func:`settle_level` lies inside the
-    ball of radius tolerance / 2, and guarded steps never leave it: a start whose state enters
-    it is settled and no longer integrated, so the check costs the time rollouts take to
-    arrive. A policy without a Lyapunov function integrates to the horizon.
+    function also takes the guarded step (:func:`snds.rollout.guarded_step`, Armijo's
+    condition on V), so V falls at every accepted step. The sublevel set {V < c} of
+    :func:`settle_level` lies inside the model-coordinate ball whose image is within half of
+    every tolerance (:meth:`~snds.policy.Policy.model_scale`), and guarded steps never leave
+    it: a start whose state enters it is settled and no longer integrated, so the check costs
+    the time rollouts take to arrive. A policy without a Lyapunov function integrates to the
+    horizon.
 
     A rollout takes at most horizon / dt accepted steps, as many as fixed steps of dt would
     (a step the guard shortens counts as one; a step rejected for its error does not), so a
@@ -389,9 +434,19 @@ def _roll_out_and_settle(
     marks the rollouts at one of whose recorded states plain Euler at the data's step ``dt``
     would not have met the guard's condition.
     """
+    space = policy.space
     count = len(starts)
     x = starts.clone()
-    time = torch.zeros_like(x[:, 0])
+    like = {"dtype": x.dtype, "device": x.device}
+    error_scales = torch.as_tensor(space.error_scales(extent), **like)
+    tangent_scales = torch.as_tensor(space.tangent_scales(extent), **like)
+    tolerance = config.tolerance_factor
+    step_tolerance, max_step = config.step_tolerance_factor, horizon / 50
+
+    def errors(states: torch.Tensor) -> torch.Tensor:
+        return space.errors(states, target) / error_scales
+
+    time = torch.zeros(count, **like)
     h = torch.full_like(time, dt)
     # Time since which each rollout has been within the tolerance (NaN while outside).
     arrival = torch.zeros_like(time)
@@ -399,13 +454,16 @@ def _roll_out_and_settle(
     visited = []
     shortened = torch.zeros(count, dtype=torch.bool, device=x.device)
     level = value = lyapunov = rate = None
+    rises = 0
     if policy.stable:
-        radius = 0.5 * tolerance / policy.normalization.length
-        level = settle_level(policy.lyapunov, radius, dim=starts.shape[-1])
+        # The model-coordinate radius whose image lies within half of every tolerance.
+        reach = policy.model_scale() / space.error_scales(extent)
+        radius = 0.5 * tolerance / float(reach.max())
+        level = settle_level(policy.lyapunov, radius, dim=policy.dim)
         lyapunov, rate = policy_guard(policy)
         value = lyapunov(x)
     velocity = policy(x)
-    arrival[(x - target).norm(dim=-1) > tolerance] = float("nan")
+    arrival[(errors(x) > tolerance).any(dim=-1)] = float("nan")
     # The budget of fixed steps at dt: steps the guard shortens still count as steps, so a
     # field so stiff that the guard shrinks every step ends after as many steps as before.
     budget = int(np.ceil(horizon / dt))
@@ -418,24 +476,33 @@ def _roll_out_and_settle(
             if lyapunov is not None:
                 # Would plain Euler at the data's step meet the guard's condition here?
                 before = value[active]
-                after = lyapunov(xa + dt * va)
+                after = lyapunov(space.advance(xa, torch.full_like(ha, dt), va))
                 required = 0.5 * dt * rate(xa, before)
                 bad = ~((after <= before - required) & (after < before)) & (before > 0)
                 shortened[active[bad]] = True
         # No step moves a state by more than 5% of its distance to the target (or takes
         # longer than dt): relative accuracy on the final approach, and arrival times resolved
         # to a twentieth of the time left. The last step ends exactly at the horizon.
-        reach = 0.05 * (xa - target).norm(dim=-1) / va.norm(dim=-1)
+        distance = errors(xa).max(dim=-1).values
+        reach = 0.05 * distance / (va / tangent_scales).norm(dim=-1)
         ha = torch.minimum(ha, reach.nan_to_num(nan=dt).clamp_min(dt))
         ha = torch.minimum(ha, horizon - time[active])
         if value is not None:
+            before = value[active]
             candidate, ha, new = guarded_step(
-                lambda _, v=va: v, lyapunov, xa, dt=ha, rate=rate, value=value[active]
+                lambda _, v=va: v,
+                lyapunov,
+                xa,
+                dt=ha,
+                rate=rate,
+                value=before,
+                advance=space.advance,
+                max_halvings=config.max_halvings,
             )
         else:
-            candidate, new = xa + ha.unsqueeze(-1) * va, None
+            candidate, new = space.advance(xa, ha, va), None
         v_new = policy(candidate)
-        error = 0.5 * ha * (v_new - va).norm(dim=-1)
+        error = 0.5 * ha * ((v_new - va) / tangent_scales).norm(dim=-1)
         # A step no longer than the data's is always accepted: at worst the check integrates
         # as plain (guarded) Euler at dt, never slower.
         accept = (error <= step_tolerance) | (ha <= dt)
@@ -448,8 +515,12 @@ def _roll_out_and_settle(
         time[done] = time[done] + ha[accept]
         taken[done] += 1
         if value is not None:
+            # Only a step that ran out of halvings can raise V (V below 1e-12 is the target
+            # up to rounding).
+            rose = (new > before * (1 + 1e-9)) & (before > 1e-12) & accept
+            rises += int(rose.sum())
             value[done] = new[accept]
-        outside = (x[done] - target).norm(dim=-1) > tolerance
+        outside = (errors(x[done]) > tolerance).any(dim=-1)
         arrival[done[outside]] = float("nan")
         entered = done[~outside & arrival[done].isnan()]
         arrival[entered] = time[entered]
@@ -458,5 +529,4 @@ def _roll_out_and_settle(
         if level is not None:
             finished = finished | (value[active] < level)
         active = active[~finished]
-    final = (x - target).norm(dim=-1)
-    return _Arrivals(x, final, arrival, shortened, torch.cat(visited), steps)
+    return _Arrivals(x, errors(x), arrival, shortened, torch.cat(visited), steps, rises)

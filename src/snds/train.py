@@ -263,7 +263,8 @@ def fit(
 
     Arguments:
         policy: The policy to train; moved to ``config.dtype`` and ``config.device``.
-        demos: The demonstrations, in user units.
+        demos: The demonstrations, in user units, in the policy's space (poses for a pose
+            policy).
         split: Which samples train (the rest are ignored here).
         config: The optimisation settings.
         progress: Show a progress bar (only on a terminal).
@@ -282,7 +283,9 @@ def fit(
         raise ConfigError(f"checkpoint_every must be >= 1, got {checkpoint_every}")
     dtype = DTYPES[config.dtype]
     policy.to(device=config.device, dtype=dtype)
-    samples = make_samples(demos, policy.normalization, split, window=config.window).to(
+    # In the coordinates the normalisation maps to model coordinates (a pose policy's chart).
+    chart = policy.training_demonstrations(demos)
+    samples = make_samples(chart, policy.normalization, split, window=config.window).to(
         dtype, config.device
     )
     generator = torch.Generator().manual_seed(config.seed)

@@ -14,7 +14,7 @@ from snds.errors import DataError
 from snds.io import load_model, save_model
 from snds.losses import make_samples
 from snds.methods import METHODS, POLICY_KINDS
-from snds.stability import check_stability
+from snds.stability import CheckConfig, check_stability
 from snds.train import TrainConfig
 
 SMALL = SDSEFConfig(layers=4, features=16, speed_features=16, max_log_scale=0.0)
@@ -202,7 +202,7 @@ def test_learns_a_warped_stable_system(trained):
 
 def test_learned_policy_reaches_the_target_from_random_starts(trained):
     policy, demos, _ = trained
-    report = check_stability(policy, demos, rollouts=100, samples=2000, seed=0)
+    report = check_stability(policy, demos, CheckConfig(rollouts=100, samples=2000, seed=0))
     assert report.converged_fraction == 1.0
     assert report.decrease_violations == 0 and report.samples_checked == 2000
 

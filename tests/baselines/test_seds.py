@@ -11,7 +11,7 @@ import torch
 from snds.data import Demonstration, Demonstrations, Normalization
 from snds.data.demonstrations import Split, split_samples
 from snds.losses import make_samples
-from snds.stability import check_stability
+from snds.stability import CheckConfig, check_stability
 
 from conftest import spiral_demos
 
@@ -126,7 +126,7 @@ def test_learns_a_linear_spiral_almost_exactly(fitted, spiral_split):
 
 def test_reaches_the_target_from_random_starts(fitted, spiral_split):
     demos, _ = spiral_split
-    report = check_stability(fitted.policy, demos, rollouts=100, samples=2000, seed=0)
+    report = check_stability(fitted.policy, demos, CheckConfig(rollouts=100, samples=2000, seed=0))
     assert report.converged_fraction == 1.0
     assert report.decrease_violations == 0 and report.samples_checked == 2000
 
@@ -163,7 +163,7 @@ def test_curved_motion_uses_several_components_and_stays_stable():
     fitted = dataclasses.replace(SEDS(), max_components=5, steps=200).fit(demos, split, seed=0)
     assert fitted.record["seds"]["components"] > 1
     assert held_out_relative_mse(fitted.policy, demos, split) < 0.1
-    report = check_stability(fitted.policy, demos, rollouts=100, samples=2000, seed=0)
+    report = check_stability(fitted.policy, demos, CheckConfig(rollouts=100, samples=2000, seed=0))
     assert report.converged_fraction == 1.0 and report.decrease_violations == 0
 
 
@@ -207,7 +207,7 @@ def test_other_dimensions(dim):
     fitted = dataclasses.replace(SEDS(), max_components=3, steps=100).fit(demos, split, seed=0)
     assert (symmetric_part_eigenvalues(fitted.policy.matrices.numpy()) < 0).all()
     assert held_out_relative_mse(fitted.policy, demos, split) < 0.01
-    report = check_stability(fitted.policy, demos, rollouts=30, samples=500, seed=0)
+    report = check_stability(fitted.policy, demos, CheckConfig(rollouts=30, samples=500, seed=0))
     assert report.converged_fraction == 1.0 and report.decrease_violations == 0
 
 

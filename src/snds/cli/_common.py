@@ -17,11 +17,14 @@ from snds.data import (
     split_demos,
     split_samples,
 )
+from snds.data.poses import is_pose_file, load_poses, with_synthetic_orientations
 from snds.errors import ConfigError, SNDSError
 from snds.models import load_model
 from snds.obstacles import Scene, load_scene, parse_obstacle, parse_workspace
 from snds.plotting import plot_all, plot_obstacles
-from snds.policy import StablePolicy
+from snds.policy import Policy, StablePolicy
+from snds.spaces import SE3, Euclidean
+from snds.stability import CheckConfig
 
 
 def _scene(args: argparse.Namespace):
@@ -79,25 +82,60 @@ def _check_sizes(args: argparse.Namespace) -> None:
         raise ConfigError(f"--samples must be >= 0, got {args.samples}")
 
 
-def _model_and_data(args: argparse.Namespace) -> tuple[StablePolicy, dict, Demonstrations]:
+def _check_config(args: argparse.Namespace) -> CheckConfig:
+    """The stability check that ``--rollouts``, ``--samples``, ``--grid`` and ``--seed`` ask
+    for (the library's :class:`~snds.stability.CheckConfig` for everything else)."""
+    _check_sizes(args)
+    return CheckConfig(rollouts=args.rollouts, samples=args.samples, grid=args.grid, seed=args.seed)
+
+
+def _model_and_data(args: argparse.Namespace) -> tuple[Policy, dict, Demonstrations]:
+    """A saved model, its record, and the demonstrations it was trained on (or those that
+    ``--motion`` / ``--data`` name), in the model's space: poses for a pose model."""
     policy, description = load_model(args.model)
-    if args.motion is None and args.data is None:
-        source = description.get("data", {})
-        if "motion" in source:
-            demos = _load_data(source["motion"], None, source.get("demos"))
-        elif "file" in source:
-            demos = _load_data(
-                None, Path(source["file"]), source.get("demos"), source.get("max_end_spread")
-            )
-        else:
-            raise SNDSError(f"{args.model}: no data recorded; pass --motion or --data")
+    source = description.get("data", {})
+    poses = isinstance(policy.space, SE3)
+    seed = int(source.get("orientation_seed", 0))
+    if args.motion is not None or args.data is not None:
+        demos = _task_data(
+            args.motion, args.data, args.demos, args.max_end_spread, poses=poses, seed=seed
+        )
+    elif "motion" in source or "file" in source:
+        data = Path(source["file"]) if "file" in source else None
+        spread = source.get("max_end_spread")
+        demos = _task_data(
+            source.get("motion"), data, source.get("demos"), spread, poses=poses, seed=seed
+        )
     else:
-        demos = _load_data(args.motion, args.data, args.demos, args.max_end_spread)
-    if demos.dim != policy.dim:
+        raise SNDSError(f"{args.model}: no data recorded; pass --motion or --data")
+    width = demos[0].states.shape[1]
+    if width != policy.space.dim:
         raise SNDSError(
-            f"the data has dimension {demos.dim}, the model in {args.model} {policy.dim}"
+            f"the data has dimension {width}, the model in {args.model} {policy.space.dim}"
         )
     return policy, description, demos
+
+
+def _refuse_obstacles(policy: Policy, command: str) -> None:
+    """Obstacles are for position models here (``snds simulate`` takes both)."""
+    if not isinstance(policy.space, Euclidean):
+        raise ConfigError(f"obstacles: snds {command} takes position models (simulate: both)")
+
+
+def _task_data(
+    motion: str | None,
+    data: Path | None,
+    demos: int | list[int] | None,
+    max_end_spread: float | None,
+    *,
+    poses: bool,
+    seed: int,
+):
+    """Positions (:func:`_load_data`), or with ``poses`` pose demonstrations
+    (:func:`_pose_data`, synthetic orientations seeded by ``seed``)."""
+    if poses:
+        return _pose_data(motion, data, demos, seed, max_end_spread)
+    return _load_data(motion, data, demos, max_end_spread)
 
 
 def _write_plots(
@@ -117,9 +155,15 @@ def _summarise(out: Path, metrics: dict) -> None:
     stability = metrics["stability"]
     seconds = metrics.get("train_seconds")
     timing = f"trained in {seconds:.1f} s, " if seconds is not None else ""
+    angles = (
+        f"orientation error {metrics['angle_error_along']:.4f} rad along the path, "
+        f"{metrics['final_angle_error']:.4f} rad at the end, "
+        if "angle_error_along" in metrics
+        else ""
+    )
     print(
         f"{out}: {timing}velocity MSE {metrics['velocity_mse_paper']:.4f} (paper scale), "
-        f"DTW {metrics['dtw_paper']:.4f} (paper scale), "
+        f"DTW {metrics['dtw_paper']:.4f} (paper scale), {angles}"
         f"converged {stability['converged_fraction']:.3f} of {stability['rollouts']} rollouts, "
         f"{stability['decrease_violations']} decrease violations in "
         f"{stability['samples_checked']} samples" + _guard_summary(stability)
@@ -136,19 +180,8 @@ def _guard_summary(stability: dict) -> str:
     )
 
 
-# --- SE(3) pose policies (snds.se3) ------------------------------------------------------------
-
-
 def _is_pose_file(path: Path) -> bool:
-    from snds.data.poses import is_pose_file
-
     return is_pose_file(path)
-
-
-def _is_pose_model(directory: Path) -> bool:
-    from snds.io import read_description
-
-    return read_description(directory).get("kind") == "se3"
 
 
 def _pose_data(
@@ -157,40 +190,9 @@ def _pose_data(
     """Pose demonstrations: a pose file as it is, or position data (LASA, .mat, ...) lifted
     with synthetic orientations seeded by ``seed`` (see
     :func:`snds.data.poses.with_synthetic_orientations`)."""
-    from snds.data.poses import load_poses, with_synthetic_orientations
-
     if data is not None and _is_pose_file(data):
         select = list(range(demos)) if isinstance(demos, int) else demos
         spread = MAX_END_SPREAD if max_end_spread is None else max_end_spread
         return load_poses(data, select=select, max_end_spread=spread)
     loaded = _load_data(motion, data, demos, max_end_spread)
     return with_synthetic_orientations(loaded, seed=seed)
-
-
-def _pose_model_and_data(args: argparse.Namespace):
-    policy, description = load_model(args.model)
-    source = description.get("data", {})
-    seed = int(source.get("orientation_seed", 0))
-    if args.motion is not None or args.data is not None:
-        poses = _pose_data(args.motion, args.data, args.demos, seed, args.max_end_spread)
-    elif "motion" in source or "file" in source:
-        data = Path(source["file"]) if "file" in source else None
-        spread = source.get("max_end_spread")
-        poses = _pose_data(source.get("motion"), data, source.get("demos"), seed, spread)
-    else:
-        raise SNDSError(f"{args.model}: no data recorded; pass --motion or --data")
-    return policy, description, poses
-
-
-def _summarise_se3(out: Path, metrics: dict) -> None:
-    stability = metrics["stability"]
-    seconds = metrics.get("train_seconds")
-    timing = f"trained in {seconds:.1f} s, " if seconds is not None else ""
-    print(
-        f"{out}: {timing}position DTW {metrics['position_dtw_paper']:.4f} (paper scale), "
-        f"orientation error {metrics['orientation_error_along']:.4f} rad along the path, "
-        f"{metrics['final_orientation_error']:.4f} rad at the end; converged "
-        f"{stability['converged_fraction']:.3f} of {stability['rollouts']} random poses, "
-        f"{stability['decrease_violations']} decrease violations in "
-        f"{stability['samples_checked']} samples"
-    )

@@ -7,17 +7,14 @@ from pathlib import Path
 
 from snds.cli._args import _check_arguments, _data_arguments, _obstacle_arguments
 from snds.cli._common import (
-    _check_sizes,
-    _is_pose_model,
+    _check_config,
     _make_split,
     _model_and_data,
-    _pose_model_and_data,
+    _refuse_obstacles,
     _scene,
     _summarise,
-    _summarise_se3,
 )
 from snds.data import Demonstrations
-from snds.errors import ConfigError
 from snds.evaluate import evaluate
 from snds.io import to_jsonable, write_json
 from snds.obstacles import check_obstacles
@@ -40,23 +37,13 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     scene = _scene(args)
-    _check_sizes(args)
-    if _is_pose_model(args.model):
-        if scene is not None:
-            raise ConfigError("obstacles: snds evaluate takes position models (simulate: both)")
-        return _evaluate_se3(args)
+    check = _check_config(args)
     policy, description, demos = _model_and_data(args)
     if scene is not None:
+        _refuse_obstacles(policy, "evaluate")
         return _evaluate_obstacles(args, policy, demos, scene)
-    metrics = evaluate(
-        policy,
-        demos,
-        _make_split(demos, description.get("split", {})),
-        seed=args.seed,
-        rollouts=args.rollouts,
-        grid=args.grid,
-        samples=args.samples,
-    )
+    split = _make_split(demos, description.get("split", {}))
+    metrics = evaluate(policy, demos, split, check=check)
     metrics["train_seconds"] = description.get("train_result", {}).get("seconds")
     RunFolder(args.model).write_metrics(metrics)
     if not args.quiet:
@@ -80,24 +67,4 @@ def _evaluate_obstacles(args: argparse.Namespace, policy: Policy, demos: Demonst
             f"starts: {d.reached} of {d.starts} reached, {d.penetrated} penetrated; "
             f"{report.wall_seconds:.1f} s"
         )
-    return 0
-
-
-def _evaluate_se3(args: argparse.Namespace) -> int:
-    from snds.se3 import evaluate_pose, tangent_demonstrations
-
-    policy, description, poses = _pose_model_and_data(args)
-    tangent = tangent_demonstrations(
-        poses,
-        position_scale=policy.config.position_scale,
-        rotation_scale=policy.config.rotation_scale,
-    )
-    split = _make_split(tangent, description.get("split", {}))
-    metrics = evaluate_pose(
-        policy, poses, split, seed=args.seed, rollouts=args.rollouts, samples=args.samples
-    )
-    metrics["train_seconds"] = description.get("train_result", {}).get("seconds")
-    RunFolder(args.model).write_metrics(metrics)
-    if not args.quiet:
-        _summarise_se3(args.model, metrics)
     return 0

@@ -14,6 +14,7 @@ from snds.io import to_jsonable, write_json
 from snds.models import load_model
 from snds.obstacles import ModulatedPolicy
 from snds.policy import Policy
+from snds.spaces import Euclidean
 
 __all__ = ["register", "run"]
 
@@ -77,9 +78,8 @@ def run(args: argparse.Namespace) -> int:
 def _with_obstacles(policy: Policy, scene) -> Policy:
     """The policy of ``snds export --obstacle``: the modulation in the graph (fixed obstacles,
     position models), or a one-line refusal of what the graph cannot hold."""
-    from snds.se3 import PosePolicy
 
-    if isinstance(policy, PosePolicy):
+    if not isinstance(policy.space, Euclidean):
         raise ConfigError(
             "obstacles cannot be exported with a pose model (its graph maps poses to twists); "
             "modulate the linear part in the controller (snds.obstacles.modulate_twist)"

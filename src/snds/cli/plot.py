@@ -6,14 +6,7 @@ import argparse
 from pathlib import Path
 
 from snds.cli._args import _data_arguments, _obstacle_arguments
-from snds.cli._common import (
-    _is_pose_model,
-    _model_and_data,
-    _pose_model_and_data,
-    _scene,
-    _write_plots,
-)
-from snds.errors import ConfigError
+from snds.cli._common import _model_and_data, _refuse_obstacles, _scene, _write_plots
 from snds.runs import RunFolder
 
 __all__ = ["register", "run"]
@@ -31,27 +24,12 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     scene = _scene(args)
-    if _is_pose_model(args.model):
-        if scene is not None:
-            raise ConfigError("obstacles: snds plot takes position models (simulate: both)")
-        return _plot_se3(args)
     policy, _, demos = _model_and_data(args)
     if scene is not None:
+        _refuse_obstacles(policy, "plot")
         scene.check(demos.dim, demos.target)
     history = RunFolder(args.model).read_history()
     paths = _write_plots(policy, demos, args.out or args.model, history, scene=scene)
-    if not args.quiet:
-        for path in paths:
-            print(path)
-    return 0
-
-
-def _plot_se3(args: argparse.Namespace) -> int:
-    from snds.se3 import plot_pose_policy
-
-    policy, _, poses = _pose_model_and_data(args)
-    history = RunFolder(args.model).read_history()
-    paths = plot_pose_policy(policy, poses, args.out or args.model, history=history)
     if not args.quiet:
         for path in paths:
             print(path)

@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from snds.cli._args import _data_arguments, _obstacle_arguments
-from snds.cli._common import _is_pose_model, _model_and_data, _pose_model_and_data, _scene, _source
+from snds.cli._common import _model_and_data, _scene, _source
 from snds.errors import SNDSError
 from snds.io import to_jsonable, write_json
 
@@ -95,12 +95,12 @@ def run(args: argparse.Namespace) -> int:
     from snds.sim.plots import plot_frames, plot_path, render_frames
 
     scene = _scene(args)
-    pose = _is_pose_model(args.model)
-    policy, _, demos = _pose_model_and_data(args) if pose else _model_and_data(args)
+    policy, _, demos = _model_and_data(args)
     if not 0 <= args.start_demo < len(demos):
         raise SNDSError(f"--start-demo {args.start_demo}: there are {len(demos)} demonstrations")
     if scene is not None:
-        scene.check(3 if pose else demos.dim, demos.target_position if pose else demos.target)
+        space = policy.space
+        scene.check(space.position_dim, space.positions(np.asarray(demos.target)))
     config = SimConfig(
         robot=args.robot,
         scale=args.scale,
@@ -111,9 +111,8 @@ def run(args: argparse.Namespace) -> int:
         push=args.push,
         obstacles=scene,
     )
-    first = demos[args.start_demo]
-    # A pose model starts from a pose: position and quaternion, 7 numbers.
-    start = np.r_[first.positions[0], first.orientations[0]] if pose else first.positions[0]
+    # A state of the model's space: a position, or for a pose model position and quaternion.
+    start = demos[args.start_demo].states[0]
     result = simulate(policy, start, config)
     out = args.out or args.model / f"sim-{config.robot}"
     record = {

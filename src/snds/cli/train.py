@@ -14,20 +14,17 @@ from pathlib import Path
 
 from snds.cli._args import _check_arguments, _data_arguments, _index_list
 from snds.cli._common import (
-    _check_sizes,
+    _check_config,
     _is_pose_file,
-    _load_data,
     _make_split,
-    _pose_data,
     _source,
     _summarise,
-    _summarise_se3,
+    _task_data,
     _write_plots,
 )
-from snds.data import Normalization
-from snds.errors import ConfigError
 from snds.evaluate import evaluate
-from snds.policy import DEFAULT_WARP_LAYERS, Policy, PolicyConfig, StablePolicy
+from snds.method import make_policy
+from snds.policy import DEFAULT_WARP_LAYERS, Policy, PolicyConfig
 from snds.recipes import ARCHITECTURES, RECIPES
 from snds.runs import RunFolder
 from snds.train import TrainConfig, TrainResult, fit
@@ -148,22 +145,17 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    _check_sizes(args)
-    if args.se3 or (args.data is not None and _is_pose_file(args.data)):
-        if args.resume:
-            # Refused rather than ignored: a user must not believe a pose run resumed.
-            raise ConfigError("--resume is not available for SE(3) training yet")
-        return _train_se3(args)
-    demos = _load_data(args.motion, args.data, args.demos, args.max_end_spread)
-    out = args.out or Path("runs") / (demos.name or Path(str(args.data)).stem)
-    split_record, train_config = _train_settings(args)
-    split = _make_split(demos, split_record)
-    policy = StablePolicy(
-        dim=demos.dim,
-        normalization=Normalization.fit(demos),
-        config=_policy_config(args),
-        seed=args.seed,
+    check = _check_config(args)
+    poses = args.se3 or (args.data is not None and _is_pose_file(args.data))
+    demos = _task_data(
+        args.motion, args.data, args.demos, args.max_end_spread, poses=poses, seed=args.seed
     )
+    name = demos.name or Path(str(args.data)).stem
+    out = args.out or Path("runs") / (f"{name}-se3" if poses else name)
+    defaults = {"shape_weight": POSE_SHAPE_WEIGHT, "position_noise": POSE_POSITION_NOISE}
+    split_record, train_config = _train_settings(args, **(defaults if poses else {}))
+    split = _make_split(demos, split_record)
+    policy = make_policy(demos, config=_policy_config(args), seed=args.seed)
     folder = RunFolder(out)
     folder.prepare(resume=args.resume)
     checkpoint = folder.checkpoint
@@ -178,16 +170,9 @@ def run(args: argparse.Namespace) -> int:
         checkpoint=checkpoint,
         checkpoint_every=args.checkpoint_every,
     )
-    _save_run(out, policy, result, data=_source(args), split=split_record, train=train_config)
-    metrics = evaluate(
-        policy,
-        demos,
-        split,
-        seed=args.seed,
-        rollouts=args.rollouts,
-        grid=args.grid,
-        samples=args.samples,
-    )
+    source = _source(args) | ({"orientation_seed": args.seed} if poses else {})
+    _save_run(out, policy, result, data=source, split=split_record, train=train_config)
+    metrics = evaluate(policy, demos, split, check=check)
     metrics["train_seconds"] = result.seconds
     folder.write_metrics(metrics)
     if args.plot:
@@ -247,32 +232,3 @@ def _policy_config(args: argparse.Namespace) -> PolicyConfig:
         warp_layers=args.warp_layers,
         stable=not args.unconstrained,
     )
-
-
-def _train_se3(args: argparse.Namespace) -> int:
-    from snds.se3 import evaluate_pose, make_pose_policy
-
-    poses = _pose_data(args.motion, args.data, args.demos, args.seed, args.max_end_spread)
-    out = args.out or Path("runs") / f"{poses.name or Path(str(args.data)).stem}-se3"
-    if out.exists() and not out.is_dir():
-        raise ConfigError(f"--out {out}: is a file, not a directory")
-    policy, demos = make_pose_policy(poses, config=_policy_config(args), seed=args.seed)
-    split_record, train_config = _train_settings(
-        args, shape_weight=POSE_SHAPE_WEIGHT, position_noise=POSE_POSITION_NOISE
-    )
-    split = _make_split(demos, split_record)
-    result = fit(policy, demos, split, train_config, progress=not args.quiet)
-    source = {**_source(args), "orientation_seed": args.seed}
-    _save_run(out, policy, result, data=source, split=split_record, train=train_config)
-    metrics = evaluate_pose(
-        policy, poses, split, seed=args.seed, rollouts=args.rollouts, samples=args.samples
-    )
-    metrics["train_seconds"] = result.seconds
-    RunFolder(out).write_metrics(metrics)
-    if args.plot:
-        from snds.se3 import plot_pose_policy
-
-        plot_pose_policy(policy, poses, out, history=result.history)
-    if not args.quiet:
-        _summarise_se3(out, metrics)
-    return 0

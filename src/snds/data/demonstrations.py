@@ -64,6 +64,11 @@ class Demonstration:
         return float(self.times[-1] - self.times[0])
 
     @property
+    def states(self) -> np.ndarray:
+        """The states along the motion, shape (T, n): the positions themselves."""
+        return self.positions
+
+    @property
     def dt(self) -> np.ndarray:
         """Time steps between consecutive samples, shape (T - 1,)."""
         return np.diff(self.times)

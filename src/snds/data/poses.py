@@ -23,6 +23,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -76,6 +77,27 @@ def _unit_quaternions(value: np.ndarray, name: str) -> np.ndarray:
     return q
 
 
+def angular_velocities(orientations: np.ndarray, times: np.ndarray) -> np.ndarray:
+    r"""World-frame angular velocities :math:`\omega` of a sampled orientation path.
+
+    Central differences on SO(3), :math:`\omega_k = \log(q_{k+1} q_{k-1}^{-1}) /
+    (t_{k+1} - t_{k-1})` (one-sided at the ends): each log is of a small rotation, so the
+    double cover never enters.
+
+    Arguments:
+        orientations: Unit quaternions, shape (T, 4), T >= 2.
+        times: Sample times, shape (T,).
+
+    Returns:
+        Angular velocities in rad/s, shape (T, 3).
+    """
+    rotations = Rotation.from_quat(orientations)
+    ahead = np.r_[1 : len(times), len(times) - 1]
+    behind = np.r_[0, 0 : len(times) - 1]
+    turn = (rotations[ahead] * rotations[behind].inv()).as_rotvec()
+    return turn / (times[ahead] - times[behind])[:, None]
+
+
 @dataclass(frozen=True)
 class PoseDemonstration:
     """One demonstrated motion of a pose, sampled in time.
@@ -108,6 +130,20 @@ class PoseDemonstration:
     def duration(self) -> float:
         """Time from the first to the last sample, in seconds."""
         return float(self.times[-1] - self.times[0])
+
+    @property
+    def states(self) -> np.ndarray:
+        """The poses as rows (x, y, z, qx, qy, qz, qw), shape (T, 7)."""
+        return np.concatenate([self.positions, self.orientations], axis=1)
+
+    @cached_property
+    def velocities(self) -> np.ndarray:
+        """The demonstrated twists (linear velocity, world-frame angular velocity), shape
+        (T, 6): second-order differences of the positions against the times, and
+        :func:`angular_velocities`."""
+        edge = 2 if len(self.times) > 2 else 1
+        linear = np.gradient(self.positions, self.times, axis=0, edge_order=edge)
+        return np.concatenate([linear, angular_velocities(self.orientations, self.times)], axis=1)
 
 
 @dataclass(frozen=True)
@@ -172,6 +208,15 @@ class PoseDemonstrations:
         return float(
             max(angles_to(demo.orientations, self.target_orientation).max() for demo in self)
         )
+
+    @property
+    def target(self) -> np.ndarray:
+        """The target pose as one row (x, y, z, qx, qy, qz, qw), shape (7,)."""
+        return np.concatenate([self.target_position, self.target_orientation])
+
+    def max_speed(self) -> float:
+        """Largest demonstrated linear speed, in user units per second."""
+        return float(max(np.linalg.norm(demo.velocities[:, :3], axis=-1).max() for demo in self))
 
     def max_duration(self) -> float:
         """Duration of the longest demonstration, in seconds."""

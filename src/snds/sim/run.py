@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 import torch
@@ -33,10 +33,11 @@ from scipy.spatial.transform import Rotation
 
 from snds.obstacles import Scene, avoid_step, modulate_twist, step_fraction
 from snds.policy import Policy, float64_copy
-from snds.rollout import guarded_step, policy_guard
-from snds.se3 import PoseGuard, PosePolicy
+from snds.rollout import policy_guard, safe_velocity
+from snds.se3 import PosePolicy
 from snds.sim.arm import Arm, EndEffector, joint_velocity, orientation_error
 from snds.sim.robots import Robot, SimulationError, get_robot
+from snds.spaces import SE3, Euclidean, Space
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -294,8 +295,8 @@ class PositionCommander:
         """The policy's velocity at the measured position; the holds on the rest.
 
         With a Lyapunov function the velocity is scaled down so that holding it for one
-        control period decreases V enough (the guarded step of
-        :func:`snds.rollout.guarded_step`), as for pose policies.
+        control period decreases V enough (:func:`snds.rollout.safe_velocity`), as for pose
+        policies.
         """
         state = torch.as_tensor(self.placement.to_task(pose.position))[None]
         scene = self.config.obstacles
@@ -307,13 +308,7 @@ class PositionCommander:
                 _, h, velocity = avoid_step(self.policy, scene, state, dt=dt, guard=self.guard)
                 velocity = velocity * (h / dt).unsqueeze(-1)
             else:
-                velocity = self.policy(state)
-            if self.guard is not None and scene is None:
-                lyapunov, rate = self.guard
-                dt = 1.0 / self.config.control_rate
-                # The velocity is evaluated once: the guarded step only asks for it at state.
-                _, h, _ = guarded_step(lambda _: velocity, lyapunov, state, dt=dt, rate=rate)
-                velocity = velocity * (h / dt).unsqueeze(-1)
+                velocity = safe_velocity(self.policy, state, 1.0 / self.config.control_rate)[0]
             velocity = velocity[0].numpy()
         gain = self.config.hold_gain
         return np.concatenate(
@@ -340,7 +335,6 @@ class PoseCommander:
 
     def __init__(self, policy: PosePolicy, placement: PosePlacement, config: SimConfig) -> None:
         self.policy = policy
-        self.guard = PoseGuard(policy)
         self.pose_placement = placement
         self.placement = placement.positions
         self.rotation = placement.rotation
@@ -383,17 +377,14 @@ class PoseCommander:
         """The policy's linear and angular velocity at the measured pose, in the world.
 
         With a Lyapunov function the twist is scaled down so that holding it for one control
-        period decreases V enough (:meth:`snds.se3.PoseGuard.safe_twist`): a stiff field
+        period decreases V enough (:func:`snds.rollout.safe_velocity`): a stiff field
         would otherwise make the arm chatter between two poses at constant V, the commanded
         joint velocities flipping sign every period (docs/design.md).
         """
         position, orientation = self.pose_placement.to_task(pose.position, pose.orientation)
         x = torch.as_tensor(np.concatenate([position, orientation]))[None]
         with torch.no_grad():
-            if self.policy.stable:
-                twist = self.guard.safe_twist(x, 1.0 / self.config.control_rate)[0][0]
-            else:
-                twist = self.guard.field(x)[0]
+            twist = safe_velocity(self.policy, x, 1.0 / self.config.control_rate)[0][0]
             scene = self.config.obstacles
             if scene is not None:
                 # The position part goes around the obstacles; the whole twist is shortened
@@ -410,6 +401,11 @@ class PoseCommander:
         return distance <= self.config.tolerance and angle <= self.config.angle_tolerance
 
 
+#: The commander of each state space: a position policy drives the position and holds the
+#: orientation; a pose policy drives both.
+COMMANDERS: dict[type[Space], Any] = {Euclidean: PositionCommander, SE3: PoseCommander}
+
+
 def make_commander(
     policy: Policy, robot: Robot, rest_orientation: np.ndarray, config: SimConfig
 ) -> Commander:
@@ -421,9 +417,7 @@ def make_commander(
         rest_orientation: The end effector's orientation at the rest pose, quaternion (4,).
         config: The run's settings.
     """
-    if isinstance(policy, PosePolicy):
-        return PoseCommander.build(policy, robot, rest_orientation, config)
-    return PositionCommander.build(policy, robot, rest_orientation, config)
+    return COMMANDERS[type(policy.space)].build(policy, robot, rest_orientation, config)
 
 
 @dataclass(frozen=True)
