@@ -164,16 +164,20 @@ def test_only_the_seed_may_differ(motions):
 
 def test_benchmark_fits_seeds_together_into_the_usual_run_folders(tmp_path, monkeypatch):
     # GIVEN a sweep of two seeds of Line/snds with --batch-fits 2 (a short stability check)
-    import functools
+    import importlib
 
-    from snds import benchmark, evaluate
+    from snds import benchmark
     from snds.io import load_model
 
-    monkeypatch.setattr(
-        evaluate,
-        "check_stability",
-        functools.partial(evaluate.check_stability, horizon_factor=0.2),
-    )
+    # The module, not the function snds.evaluate that the package exports under its name.
+    evaluate = importlib.import_module("snds.evaluate")
+    check_stability = evaluate.check_stability
+
+    def short_check(policy, demos, config=None):
+        config = evaluate.CheckConfig() if config is None else config
+        return check_stability(policy, demos, replace(config, horizon_factor=0.2))
+
+    monkeypatch.setattr(evaluate, "check_stability", short_check)
     tasks = benchmark.make_tasks(["Line"], ["snds"], seeds=2, demos=2)
     settings = benchmark.SweepSettings(steps=20, rollouts=5, samples=100, batch_fits=2)
 
