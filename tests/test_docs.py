@@ -117,3 +117,21 @@ def test_relative_links_resolve(page):
         elif fragment and resolved.suffix == ".md" and fragment not in _anchors(resolved):
             broken.append(target)
     assert not broken, f"{page.relative_to(ROOT)}: links to nothing: {broken}"
+
+
+def test_readme_python_example_runs(monkeypatch):
+    # GIVEN the README's Python block, with a short budget and a small check
+    block = README.read_text().split("```python\n", 1)[1].split("```", 1)[0]
+    import snds
+
+    train, check = snds.TrainConfig, snds.CheckConfig
+    short = lambda **kw: train(**{**kw, "steps": 200})  # noqa: E731
+    small = lambda **kw: check(rollouts=5, samples=100)  # noqa: E731
+    monkeypatch.setattr(snds, "TrainConfig", short)
+    monkeypatch.setattr(snds, "CheckConfig", small)
+    # WHEN it runs
+    scope: dict = {}
+    exec(compile(block, "README.md", "exec"), scope)
+    # THEN it made what it says: a stable policy's metrics, and velocities in user units
+    assert scope["metrics"]["stability"]["samples_checked"] == 100
+    assert scope["velocities"].shape == scope["demos"][0].states.shape

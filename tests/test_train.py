@@ -285,3 +285,18 @@ def test_direct_adam_and_clipping_are_torchs_bit_for_bit(spiral, monkeypatch, dt
         runs.append((history, [p.detach().clone() for p in policy.parameters()]))
     assert runs[0][0] == runs[1][0]
     assert all(torch.equal(a, b) for a, b in zip(runs[0][1], runs[1][1], strict=True))
+
+
+@pytest.mark.parametrize("steps", [10, 30, 150, 1500, 5000])
+def test_warm_up_is_long_enough_for_short_fits(steps):
+    from snds.train import MIN_WARMUP_STEPS, _learning_rate
+
+    config = TrainConfig(steps=steps)
+    rates = [_learning_rate(k, config) for k in range(steps)]
+    peak = rates.index(max(rates))
+    # The rate climbs linearly to lr over the warm-up: a fraction of the fit, but never fewer
+    # than MIN_WARMUP_STEPS steps (or a fifth of a shorter fit), then only falls.
+    expected = max(1, int(config.warmup * steps), min(MIN_WARMUP_STEPS, steps // 5))
+    assert peak == expected - 1 and rates[peak] == pytest.approx(config.lr)
+    assert all(a < b for a, b in zip(rates[:peak], rates[1 : peak + 1]))
+    assert all(a >= b for a, b in zip(rates[peak:], rates[peak + 1 :]))

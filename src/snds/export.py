@@ -59,7 +59,7 @@ TOLERANCE = {torch.float64: 1e-5, torch.float32: 3e-4}
 #: this many times the float32 library itself: next to the target two float32
 #: implementations may each be far from the exact policy and differ from each other by as
 #: much (docs/design.md, "Export accuracy").
-ROUNDING_SLACK = 1.25
+ROUNDING_SLACK = 2.0
 #: Spread of the random states of :func:`random_states`, in units of the demonstrations'
 #: extent: from near the data out to 1000x.
 STATE_RADII = (1.0, 3.0, 10.0, 100.0, 1000.0)

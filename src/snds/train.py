@@ -37,7 +37,8 @@ class TrainConfig:
         steps: Maximum number of optimiser steps.
         max_seconds: Stop after this wall time (None: no limit).
         lr: Peak learning rate of Adam.
-        warmup: Fraction of the steps with a linear learning-rate warm-up.
+        warmup: Fraction of the steps with a linear learning-rate warm-up (at least
+            :data:`MIN_WARMUP_STEPS` steps, or a fifth of a shorter fit).
         final_lr_fraction: The cosine schedule decays to lr x this.
         batch_size: Samples per step for the velocity term (0: full batch).
         window_batch_size: Windows per step for the multi-step term (0: all); smaller than
@@ -151,8 +152,14 @@ class TrainResult:
     stopped: str = "steps"
 
 
+#: The warm-up lasts at least this many steps (or a fifth of a shorter fit): Adam's first
+#: steps move every weight by about the learning rate, so a warm-up of a few steps lets a short
+#: fit jump to a poor basin.
+MIN_WARMUP_STEPS = 30
+
+
 def _learning_rate(step: int, config: TrainConfig) -> float:
-    warm = max(1, int(config.warmup * config.steps))
+    warm = max(1, int(config.warmup * config.steps), min(MIN_WARMUP_STEPS, config.steps // 5))
     if step < warm:
         return config.lr * (step + 1) / warm
     progress = (step - warm) / max(1, config.steps - warm)

@@ -203,7 +203,7 @@ def test_onnx_download_computes_the_policy(client, trained, tmp_path: Path) -> N
 
     job, _, _ = trained
     answer = client.get(f"/api/jobs/{job}/policy.onnx")
-    assert answer.status_code == 200
+    assert answer.status_code == 200, answer.text
     path = tmp_path / "policy.onnx"
     path.write_bytes(answer.content)
     states = np.random.default_rng(0).uniform(-100, 100, size=(200, 2))
