@@ -14,15 +14,11 @@ from snds import metrics
 from snds.errors import DataError
 from snds.metrics import (
     dtw,
-    dtw_paper,
     dtw_sum,
     final_distance,
     frechet,
-    mean_dtw,
-    paper_scale,
     swept_error_area,
     velocity_mse,
-    velocity_mse_paper,
 )
 
 # a = (0, 1, 2), b = (0, 2) in 1-D. Cost matrix C[i, j] = |a_i - b_j|^2:
@@ -66,15 +62,6 @@ def test_velocity_mse_is_mean_over_samples_and_coordinates():
     x = np.random.default_rng(0).normal(size=(7, 3))
     assert velocity_mse(x, 2 * x) == velocity_mse(2 * x, x)
     assert velocity_mse(x, x) == 0.0
-
-
-def test_velocity_mse_paper_divides_velocities_by_the_scale():
-    rng = np.random.default_rng(1)
-    pred, true = rng.normal(size=(5, 2)), rng.normal(size=(5, 2))
-    assert velocity_mse_paper(10 * pred, 10 * true, 10.0) == pytest.approx(
-        velocity_mse(pred, true), rel=1e-14
-    )
-    assert velocity_mse_paper(pred, true, 2.0) == pytest.approx(velocity_mse(pred, true) / 4)
 
 
 # --- DTW ----------------------------------------------------------------------------------
@@ -125,12 +112,6 @@ def test_pure_python_fallback_agrees_with_c(monkeypatch):
     monkeypatch.setattr(metrics, "_USE_C", False)
     assert dtw(a, b) == pytest.approx(fast, rel=1e-12)
     assert dtw_sum(a, b) == pytest.approx(fast_sum, rel=1e-12)
-
-
-def test_dtw_paper_divides_positions_by_the_scale():
-    rng = np.random.default_rng(5)
-    a, b = rng.normal(size=(10, 2)), rng.normal(size=(7, 2))
-    assert dtw_paper(10 * a, 10 * b, 10.0) == pytest.approx(dtw(a, b), rel=1e-12)
 
 
 def _pair(dim: int, len_a: int, len_b: int):
@@ -361,25 +342,12 @@ def test_swept_area_is_a_euclidean_area(pair, angle, scale):
     )
 
 
-# --- scales, final distance, mean DTW -----------------------------------------------------
-
-
-def test_paper_scale_is_the_largest_norms():
-    positions = np.array([[3.0, 4.0], [0.0, 1.0], [-1.0, 0.0]])
-    velocities = np.array([[1.0, 0.0], [0.0, -2.0]])
-    assert paper_scale(positions, velocities) == (5.0, 2.0)
+# --- final distance -----------------------------------------------------
 
 
 def test_final_distance_is_from_the_last_point():
     path = np.array([[100.0, 100.0], [4.0, 5.0]])
     assert final_distance(path, np.array([1.0, 1.0])) == 5.0
-
-
-def test_mean_dtw_averages_pairs_and_divides_by_the_scale():
-    # The two hand examples above: DTW 1 and sqrt(2).
-    rollouts, demos = [A_SHORT, A_BUMP], [B_SHORT, B_BUMP]
-    assert mean_dtw(rollouts, demos) == pytest.approx((1 + math.sqrt(2)) / 2)
-    assert mean_dtw(rollouts, demos, scale=2.0) == pytest.approx((1 + math.sqrt(2)) / 4)
 
 
 # --- bad input ----------------------------------------------------------------------------
@@ -403,14 +371,8 @@ def test_mean_dtw_averages_pairs_and_divides_by_the_scale():
         (swept_error_area, (np.zeros((3, 2)), np.zeros((3, 1)))),
         (swept_error_area, (np.zeros(3), np.zeros(3))),
         (swept_error_area, (np.zeros((0, 2)), np.zeros((3, 2)))),
-        (dtw_paper, (np.zeros((3, 2)), np.zeros((3, 2)), 0.0)),
-        (velocity_mse_paper, (np.zeros((3, 2)), np.zeros((3, 2)), -1.0)),
-        (paper_scale, (np.zeros((0, 2)), np.zeros((3, 2)))),
         (final_distance, (np.zeros((3, 2)), np.zeros(3))),
         (final_distance, (np.zeros((0, 2)), np.zeros(2))),
-        (mean_dtw, ([], [])),
-        (mean_dtw, ([np.zeros((3, 2))], [])),
-        (mean_dtw, ([np.zeros((3, 2))], [np.zeros((3, 2))], float("nan"))),
     ],
 )
 def test_bad_shapes_and_scales_raise_data_error(call, args):

@@ -217,6 +217,26 @@ def test_resume_gives_the_same_weights_and_history_bit_for_bit(task, tmp_path, m
     assert same_weights(again, reference)
 
 
+def test_a_pose_fit_resumes_bit_for_bit(tmp_path, monkeypatch):
+    # GIVEN a pose task (a spiral lifted to SE(3)) and a fit killed after 25 steps
+    from snds.data.poses import with_synthetic_orientations
+    from snds.method import make_policy as make_any_policy
+
+    poses = with_synthetic_orientations(spiral_demos(count=2, samples=150), seed=1)
+    split = split_samples(poses, test_fraction=0.2, seed=0)
+    config = TrainConfig(steps=40, batch_size=64, position_noise=0.0, shape_weight=0.01)
+    reference = make_any_policy(poses, config=SMALL, seed=5)
+    expected = fit(reference, poses, split, config, progress=False)
+    checkpoint = tmp_path / CHECKPOINT
+    killed = make_any_policy(poses, config=SMALL, seed=5)
+    interrupted_fit(killed, poses, split, config, checkpoint, monkeypatch, 25)
+    # WHEN it is resumed from its checkpoint
+    resumed = make_any_policy(poses, config=SMALL, seed=5)
+    result = fit(resumed, poses, split, config, progress=False, checkpoint=checkpoint)
+    # THEN it ends where the uninterrupted fit ended, as a position fit does
+    assert same_weights(resumed, reference) and result.history == expected.history
+
+
 def test_a_checkpoint_of_other_settings_or_data_is_refused(task, tmp_path, monkeypatch):
     demos, split, config = task
     checkpoint = tmp_path / CHECKPOINT

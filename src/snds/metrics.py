@@ -10,8 +10,8 @@ under distinct names:
 * :func:`dtw_sum` is the classic DTW, the minimal *sum of* Euclidean distances.
 
 The paper's scale (Fig. 4) divides positions relative to the target by their largest norm
-in the motion, and velocities by their largest norm; :func:`paper_scale` computes both and
-:func:`velocity_mse_paper` and :func:`dtw_paper` apply them.
+in the motion, and velocities by their largest norm (:func:`snds.evaluate.accuracy` reports
+both scales).
 
 Two shape metrics from the wider literature complete them: :func:`frechet`, the discrete
 Fréchet distance (the worst gap under the best monotone pairing, where DTW sums the gaps), and
@@ -29,15 +29,11 @@ from snds.errors import DataError
 
 __all__ = [
     "dtw",
-    "dtw_paper",
     "dtw_sum",
     "final_distance",
     "frechet",
-    "mean_dtw",
-    "paper_scale",
     "swept_error_area",
     "velocity_mse",
-    "velocity_mse_paper",
 ]
 
 # Decided once: asking dtaidistance for C when its extension is missing logs a warning at
@@ -60,13 +56,6 @@ def _as_pair(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     if a.shape[1] != b.shape[1]:
         raise DataError(f"a and b must have the same dimension, got {a.shape} and {b.shape}")
     return a, b
-
-
-def _check_scale(scale: float, name: str) -> float:
-    scale = float(scale)
-    if not (np.isfinite(scale) and scale > 0):
-        raise DataError(f"{name} must be finite and positive, got {scale}")
-    return scale
 
 
 def velocity_mse(pred: np.ndarray, true: np.ndarray) -> float:
@@ -146,64 +135,6 @@ def dtw_sum(a: np.ndarray, b: np.ndarray) -> float:
     return float(_dtw_ndim.distance(a, b, use_c=_USE_C, inner_dist="euclidean"))
 
 
-def paper_scale(positions: np.ndarray, velocities: np.ndarray) -> tuple[float, float]:
-    r"""The paper's normalisation constants of a motion.
-
-    Returns :math:`\max_i \|x_i - x^*\|` and :math:`\max_i \|\dot x_i\|` over all the
-    samples of all the demonstrations of the motion, so that dividing by them puts every
-    motion on the scale of the paper's Fig. 4.
-
-    Arguments:
-        positions: Positions *relative to the target*, :math:`x - x^*`, of all demonstrations
-            stacked, shape (N, n).
-        velocities: Velocities of all demonstrations stacked, shape (M, n).
-
-    Returns:
-        The position scale and the velocity scale.
-
-    Raises:
-        DataError: (a ValueError) if an array is not 2-D or is empty.
-    """
-    positions = _as_sequence(positions, "positions")
-    velocities = _as_sequence(velocities, "velocities")
-    return (
-        float(np.linalg.norm(positions, axis=-1).max()),
-        float(np.linalg.norm(velocities, axis=-1).max()),
-    )
-
-
-def velocity_mse_paper(pred: np.ndarray, true: np.ndarray, velocity_scale: float) -> float:
-    r"""Velocity MSE in the paper's scale: :func:`velocity_mse` of ``pred / s`` and ``true / s``.
-
-    Arguments:
-        pred: Predicted velocities, shape (N, n).
-        true: Demonstrated velocities, shape (N, n).
-        velocity_scale: The largest velocity norm of the motion, :math:`s > 0`
-            (second output of :func:`paper_scale`).
-
-    Returns:
-        The dimensionless MSE, equal to :math:`\mathrm{MSE} / s^2`.
-    """
-    s = _check_scale(velocity_scale, "velocity_scale")
-    return velocity_mse(np.asarray(pred) / s, np.asarray(true) / s)
-
-
-def dtw_paper(a: np.ndarray, b: np.ndarray, position_scale: float) -> float:
-    r"""DTW in the paper's scale: :func:`dtw` of ``a / s`` and ``b / s``.
-
-    Arguments:
-        a: First sequence, shape (T_a, n).
-        b: Second sequence, shape (T_b, n).
-        position_scale: The largest norm of positions relative to the target in the motion,
-            :math:`s > 0` (first output of :func:`paper_scale`).
-
-    Returns:
-        The dimensionless distance, equal to :math:`\mathrm{DTW}(a, b) / s`.
-    """
-    s = _check_scale(position_scale, "position_scale")
-    return dtw(np.asarray(a) / s, np.asarray(b) / s)
-
-
 def final_distance(path: np.ndarray, target: np.ndarray) -> float:
     r"""Euclidean distance :math:`\|x_T - x^*\|` of the last point of a rollout to the target.
 
@@ -219,30 +150,6 @@ def final_distance(path: np.ndarray, target: np.ndarray) -> float:
     if target.shape != path.shape[1:]:
         raise DataError(f"target must have shape {path.shape[1:]}, got {target.shape}")
     return float(np.linalg.norm(path[-1] - target))
-
-
-def mean_dtw(rollouts: list[np.ndarray], demos: list[np.ndarray], scale: float = 1.0) -> float:
-    r"""Mean of :func:`dtw` over pairs, rollout :math:`i` against demonstration :math:`i`.
-
-    .. math:: \frac{1}{K} \sum_{i=1}^K \mathrm{DTW}(r_i / s, d_i / s)
-
-    Arguments:
-        rollouts: K rollouts, shapes (T_i, n).
-        demos: The K demonstrations they reproduce, shapes (T'_i, n).
-        scale: The divisor :math:`s > 0`, e.g. the position scale of :func:`paper_scale`
-            (pass positions relative to the target if the scale is relative to it; DTW only
-            sees differences, so a common shift does not matter).
-
-    Raises:
-        DataError: (a ValueError) if the lists are empty or of different lengths.
-    """
-    s = _check_scale(scale, "scale")
-    if len(rollouts) != len(demos) or len(rollouts) == 0:
-        raise DataError(
-            f"need as many rollouts as demonstrations, at least one, got {len(rollouts)} "
-            f"and {len(demos)}"
-        )
-    return float(np.mean([dtw_paper(r, d, s) for r, d in zip(rollouts, demos, strict=True)]))
 
 
 def frechet(a: np.ndarray, b: np.ndarray) -> float:
