@@ -87,11 +87,8 @@ class PolicyConfig:
         decay_near: Extra decay rate at the target, fading linearly to 0 at ``near_radius``:
             a(x) gains V decay_near (1 - |x| / near_radius)_+. With rho alone the final
             approach from directions the data do not cover crawls at the floor
-            |x| ~ exp(-rho t / 2) (Worm from one demonstration: 19% of random starts still
-            outside 1% of the extent after 10 demonstration durations). The demonstrations
-            themselves shrink |x|^2 near the target at a rate of at least 2.9 per model time
-            unit (1% quantile within |x| < 0.2, on the paper's 8 motions), so a total rate of
-            2.5 there binds only where the data say nothing (0: off).
+            |x| ~ exp(-rho t / 2); the default binds only where the data say nothing
+            (docs/design.md; 0: off).
         near_radius: Radius of that region, in model coordinates.
         warp_layers: Coupling layers of a learned diffeomorphism inside V (0: none, V convex;
             see :class:`~snds.nn.WarpedLyapunov`; needs n >= 2). None (the default) takes

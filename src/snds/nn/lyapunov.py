@@ -103,7 +103,7 @@ class WarpedLyapunov(nn.Module):
 
     **Why.** The sublevel sets of a convex V are convex, and a motion that V certifies never
     leaves the sublevel set it is in, so it stays inside the convex hull of its own future: a
-    demonstration that winds back and forth (Messy Snake) passes points inside the hull of its
+    demonstration that winds back and forth (a snake) passes points inside the hull of its
     later wiggles, where no convex V can decrease along it. The warp bends the sublevel sets
     to follow such a path.
 
