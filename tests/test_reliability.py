@@ -9,7 +9,7 @@ test_stability.py, and here only its files matter.
 from __future__ import annotations
 
 import csv
-import functools
+import dataclasses
 import json
 import os
 import signal
@@ -37,10 +37,11 @@ HORIZON = 0.2
 """Stability rollouts of 0.2x the longest demonstration, not 10x: seconds, not minutes."""
 
 DRIVER = f"""
-import functools, sys
+import dataclasses, sys
 import snds.evaluate
-snds.evaluate.check_stability = functools.partial(
-    snds.evaluate.check_stability, horizon_factor={HORIZON}
+check = snds.evaluate.check_stability
+snds.evaluate.check_stability = lambda policy, demos, config=snds.evaluate.CheckConfig(): check(
+    policy, demos, dataclasses.replace(config, horizon_factor={HORIZON})
 )
 from snds.cli import main
 sys.exit(main(sys.argv[1:]))
@@ -59,8 +60,13 @@ def one_thread():
 @pytest.fixture
 def short_check(monkeypatch):
     """The same shortened stability check in this process."""
-    check = functools.partial(evaluate_module.check_stability, horizon_factor=HORIZON)
-    monkeypatch.setattr(evaluate_module, "check_stability", check)
+    check = evaluate_module.check_stability
+
+    def short(policy, demos, config=None):
+        config = evaluate_module.CheckConfig() if config is None else config
+        return check(policy, demos, dataclasses.replace(config, horizon_factor=HORIZON))
+
+    monkeypatch.setattr(evaluate_module, "check_stability", short)
 
 
 def start(argv: list[str]) -> subprocess.Popen:

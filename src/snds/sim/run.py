@@ -588,7 +588,7 @@ def simulate(policy: Policy, start: np.ndarray, config: SimConfig) -> SimResult:
             arrived = commander.arrived(distance, _angle(pose.orientation, goal))
             if (arrived and pushed) or step == steps:
                 break
-            qdot = _controller(arm, commander.twist(pose), q)
+            qdot = _controller(arm, commander.twist(pose), q, 1.0 / config.control_rate)
             reference = np.clip(reference + dt * qdot, arm.lower, arm.upper)
             arm.command(reference, qdot)
             arm.step(config.substeps)
@@ -667,8 +667,18 @@ def _angle(current: np.ndarray, wanted: np.ndarray) -> float:
     return float(np.linalg.norm(orientation_error(current, wanted)))
 
 
-def _controller(arm: Arm, twist: np.ndarray, q: np.ndarray) -> np.ndarray:
-    return joint_velocity(arm.jacobian(), twist, q, rest=arm.rest, max_speed=arm.max_speed)
+#: Joints are not commanded closer than this to their position limits (radians).
+LIMIT_MARGIN = 1e-3
+
+
+def _controller(arm: Arm, twist: np.ndarray, q: np.ndarray, dt: float) -> np.ndarray:
+    """The joint velocities of a twist (:func:`~snds.sim.arm.joint_velocity`), each clipped so
+    that holding it for one period dt does not move its joint past its position limit (less
+    :data:`LIMIT_MARGIN`); a joint already there may only move back."""
+    qdot = joint_velocity(arm.jacobian(), twist, q, rest=arm.rest, max_speed=arm.max_speed)
+    low = np.minimum((arm.lower + LIMIT_MARGIN - q) / dt, 0.0)
+    high = np.maximum((arm.upper - LIMIT_MARGIN - q) / dt, 0.0)
+    return np.clip(qdot, low, high)
 
 
 def _recovery_time(
