@@ -52,3 +52,21 @@ def test_predict_in_chunks_equals_one_batch(spiral):
     scale = np.abs(whole).max()
     np.testing.assert_allclose(policy.predict(x, chunk=97), whole, rtol=0, atol=1e-13 * scale)
     assert policy.predict(x.reshape(10, 100, 2)).shape == (10, 100, 2)
+
+
+def test_a_long_pose_demonstration_keeps_its_orientations_when_resampled():
+    # GIVEN a pose demonstration of 20,001 samples (positions on a line, turning about z)
+    from snds.data.poses import PoseDemonstration
+
+    line = _line(20_001)
+    angle = np.linspace(0.0, 1.0, len(line.times))
+    quats = np.stack([0 * angle, 0 * angle, np.sin(angle / 2), np.cos(angle / 2)], axis=1)
+    demo = PoseDemonstration(np.c_[line.positions, 0 * angle], quats, line.times)
+    # WHEN it is resampled for the path metrics
+    reference = path_reference(demo, max_samples=5000)
+    # THEN positions are interpolated, orientations are the demonstration's own samples there
+    assert reference.shape == (5000, 7)
+    np.testing.assert_array_equal(reference[[0, -1]], demo.states[[0, -1]])
+    np.testing.assert_allclose(np.linalg.norm(reference[:, 3:], axis=1), 1.0, atol=1e-12)
+    turned = 2 * np.arctan2(reference[:, 5], reference[:, 6])
+    np.testing.assert_allclose(turned, np.linspace(0.0, 1.0, 5000), atol=1e-4)

@@ -32,14 +32,15 @@ def path_reference(demo: Any, max_samples: int = MAX_PATH_SAMPLES) -> np.ndarray
     """A demonstration's states as the reproduction metrics see them, shape (T, dim): the
     samples themselves, or ``max_samples`` of them at uniform times when the demonstration is
     longer (positions interpolated linearly, further coordinates such as a pose's
-    orientation taken from the nearest sample)."""
+    orientation taken from the sample at or just after each time)."""
     states = demo.states
     if len(demo.times) <= max_samples:
         return states
     times = np.linspace(demo.times[0], demo.times[-1], max_samples)
-    columns = [np.interp(times, demo.times, demo.positions[:, k]) for k in range(demo.dim)]
-    nearest = np.abs(demo.times[None, :] - times[:, None]).argmin(axis=1)
-    return np.concatenate([np.stack(columns, axis=-1), states[nearest, demo.dim :]], axis=1)
+    dim = demo.positions.shape[1]
+    columns = [np.interp(times, demo.times, demo.positions[:, k]) for k in range(dim)]
+    nearest = np.searchsorted(demo.times, times).clip(0, len(demo.times) - 1)
+    return np.concatenate([np.stack(columns, axis=-1), states[nearest, dim:]], axis=1)
 
 
 def reproduce(policy: Policy, demos: Any, indices: list[int]) -> list[np.ndarray]:
