@@ -261,8 +261,8 @@ class Policy(nn.Module, ABC):
         within model distance r of the target is within r times this of it."""
         return np.array([self.length])
 
-    def velocity_to_user(self, x: Tensor, velocity: Tensor) -> Tensor:
-        """Model velocities (*, n) at user states x (*, space.dim) to user velocities
+    def velocity_to_user(self, z: Tensor, velocity: Tensor) -> Tensor:
+        """Model velocities (*, n) at model coordinates z (*, n) to user velocities
         (*, space.tangent_dim)."""
         return velocity * (self.length / self.time)
 
@@ -284,7 +284,8 @@ class Policy(nn.Module, ABC):
         # A Python-level test, so an export traced in the model's dtype holds no Cast node.
         if x.dtype != dtype:
             x = x.to(dtype)
-        return self.velocity_to_user(x, self.field(self.to_model(x)))
+        z = self.to_model(x)
+        return self.velocity_to_user(z, self.field(z))
 
     @torch.no_grad()
     def predict(self, x: np.ndarray, *, chunk: int = 65_536) -> np.ndarray:

@@ -146,12 +146,15 @@ class PosePolicy(StablePolicy):
         config = self.config
         return np.array([config.position_scale, config.rotation_scale]) * self.length
 
-    def velocity_to_user(self, x: Tensor, velocity: Tensor) -> Tensor:
-        r"""Model velocities (*, 6) at poses x (*, 7) to twists :math:`(v, \omega)` (*, 6):
-        :math:`\dot y` in user units per second, then :math:`\omega = J_l(r)\,\dot r`."""
-        dtype = x.dtype
-        rates = super().velocity_to_user(x, velocity) * self.scales.to(dtype)
-        r = relative_rotvec(x[..., 3:], self.target_orientation.to(dtype))
+    def velocity_to_user(self, z: Tensor, velocity: Tensor) -> Tensor:
+        r"""Model velocities (*, 6) at model coordinates z (*, 6) to twists
+        :math:`(v, \omega)` (*, 6): :math:`\dot y` in user units per second, then
+        :math:`\omega = J_l(r)\,\dot r` with the rotation vector r read back from z (the
+        normalisation's inverse, so the log map is taken once per state)."""
+        scales = self.scales.to(z.dtype)
+        rates = super().velocity_to_user(z, velocity) * scales
+        y = z * self.length + self.center.to(z.dtype)
+        r = y[..., 3:] * scales[3:]
         omega = (left_jacobian(r) @ rates[..., 3:, None])[..., 0]
         return torch.cat([rates[..., :3], omega], -1)
 

@@ -454,7 +454,8 @@ def _roll_out_and_settle(
     visited = []
     shortened = torch.zeros(count, dtype=torch.bool, device=x.device)
     level = value = lyapunov = rate = None
-    rises = 0
+    # Counted on the device, read once at the end: no host sync per step.
+    rises = torch.zeros((), dtype=torch.long, device=x.device)
     if policy.stable:
         # The model-coordinate radius whose image lies within half of every tolerance.
         reach = policy.model_scale() / space.error_scales(extent)
@@ -518,7 +519,7 @@ def _roll_out_and_settle(
             # Only a step that ran out of halvings can raise V (V below 1e-12 is the target
             # up to rounding).
             rose = (new > before * (1 + 1e-9)) & (before > 1e-12) & accept
-            rises += int(rose.sum())
+            rises += rose.sum()
             value[done] = new[accept]
         outside = (errors(x[done]) > tolerance).any(dim=-1)
         arrival[done[outside]] = float("nan")
@@ -529,4 +530,4 @@ def _roll_out_and_settle(
         if level is not None:
             finished = finished | (value[active] < level)
         active = active[~finished]
-    return _Arrivals(x, errors(x), arrival, shortened, torch.cat(visited), steps, rises)
+    return _Arrivals(x, errors(x), arrival, shortened, torch.cat(visited), steps, int(rises))

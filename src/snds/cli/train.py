@@ -33,9 +33,8 @@ __all__ = ["evaluate", "register", "run"]
 
 #: The preset behind the flags' defaults (:data:`snds.recipes.RECIPES`).
 DEFAULT = RECIPES["default"]
-#: ``--shape-weight`` and ``--position-noise`` of SE(3) pose models: the "pose" recipe's.
-POSE_SHAPE_WEIGHT = RECIPES["pose"].train.shape_weight
-POSE_POSITION_NOISE = RECIPES["pose"].train.position_noise
+#: The preset of SE(3) pose models (their ``--shape-weight`` and ``--position-noise``).
+POSE = RECIPES["pose"]
 
 
 def register(commands: argparse._SubParsersAction) -> None:
@@ -72,14 +71,14 @@ def register(commands: argparse._SubParsersAction) -> None:
         help="standard deviation of noise added to the training states (model coordinates, "
         "the data span about [-1, 1]), for demonstrations that run close together at "
         f"different speeds (default {DEFAULT.train.position_noise:g} for positions, "
-        f"{POSE_POSITION_NOISE:g} for SE(3) pose models; 0: off)",
+        f"{POSE.train.position_noise:g} for SE(3) pose models; 0: off)",
     )
     parser.add_argument(
         "--shape-weight",
         type=float,
         default=None,
         help="weight of the penalty that keeps V's sublevel sets round off the data, against "
-        f"stiff fields (default {POSE_SHAPE_WEIGHT:g} for SE(3) pose models, "
+        f"stiff fields (default {POSE.train.shape_weight:g} for SE(3) pose models, "
         f"{DEFAULT.train.shape_weight:g} (off) for positions)",
     )
     parser.add_argument(
@@ -152,8 +151,7 @@ def run(args: argparse.Namespace) -> int:
     )
     name = demos.name or Path(str(args.data)).stem
     out = args.out or Path("runs") / (f"{name}-se3" if poses else name)
-    defaults = {"shape_weight": POSE_SHAPE_WEIGHT, "position_noise": POSE_POSITION_NOISE}
-    split_record, train_config = _train_settings(args, **(defaults if poses else {}))
+    split_record, train_config = _train_settings(args, POSE.train if poses else DEFAULT.train)
     split = _make_split(demos, split_record)
     policy = make_policy(demos, config=_policy_config(args), seed=args.seed)
     folder = RunFolder(out)
@@ -184,28 +182,23 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _train_settings(
-    args: argparse.Namespace,
-    *,
-    shape_weight: float = DEFAULT.train.shape_weight,
-    position_noise: float = DEFAULT.train.position_noise,
-) -> tuple[dict, TrainConfig]:
-    """The split record and the optimisation settings of ``snds train``'s arguments, on the
-    default recipe's; ``shape_weight`` and ``position_noise`` are the defaults of their flags
-    for this kind of model."""
+def _train_settings(args: argparse.Namespace, base: TrainConfig) -> tuple[dict, TrainConfig]:
+    """The split record and the optimisation settings of ``snds train``'s arguments, on
+    ``base`` (the recipe of this kind of model), which gives ``--position-noise`` and
+    ``--shape-weight`` their defaults."""
     split_record = {
         "test_fraction": args.test_fraction,
         "seed": args.seed,
         "test_demos": args.test_demos,
     }
     train_config = dataclasses.replace(
-        DEFAULT.train,
+        base,
         steps=args.steps,
         window=args.window,
         velocity_shape=args.velocity_loss,
         nominal_weight=args.nominal_weight,
-        position_noise=position_noise if args.position_noise is None else args.position_noise,
-        shape_weight=shape_weight if args.shape_weight is None else args.shape_weight,
+        position_noise=base.position_noise if args.position_noise is None else args.position_noise,
+        shape_weight=base.shape_weight if args.shape_weight is None else args.shape_weight,
         warp_weight=args.warp_weight,
         seed=args.seed,
         device=args.device,
