@@ -3,8 +3,8 @@
 Trains every (motion, seed) with all 7 demonstrations and a random 0.8 / 0.2 split of the
 samples, evaluates on the test samples, and checks stability with the library's default
 check (random starts from a box 3x the extent, decrease-condition samples in a box 10x the
-extent). Each run is one
-process with one torch thread; ``--jobs`` runs run side by side (default: all cores).
+extent). Each run has one torch thread; ``--jobs`` runs run side by side in worker
+processes (default: all cores; ``--jobs 1`` runs them one after the other in this process).
 
     python benchmarks/core.py                       # 8 motions x 3 seeds, table into README
     python benchmarks/core.py --motions Sine --seeds 1 --set window=0 --tag no-window
@@ -24,12 +24,12 @@ import json
 import os
 import platform
 import time
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 from _readme import write_readme_section
 
 from snds.benchmark import MOTION_GROUPS, PAPER_SNDS_MSE
+from snds.parallel import starmap_unordered
 
 PAPER8 = MOTION_GROUPS["paper8"]
 PAPER_MSE = PAPER_SNDS_MSE
@@ -160,13 +160,13 @@ def main() -> None:
             write_readme_section("core", header_line(meta, rows) + "\n\n" + table)
         return
     overrides = _parse_overrides(args.set)
-    jobs = [(m, s) for m in args.motions for s in range(args.seeds)]
-    with ProcessPoolExecutor(max_workers=args.jobs) as pool:
-        futures = [pool.submit(run_one, m, s, overrides, args.quick) for m, s in jobs]
-        rows = []
-        for future in futures:
-            rows.append(future.result())
-            print(json.dumps(rows[-1]), flush=True)
+    calls = [(m, s, overrides, args.quick) for m in args.motions for s in range(args.seeds)]
+    finished = {}
+    for index, row in starmap_unordered(run_one, calls, jobs=args.jobs):
+        finished[index] = row
+        print(json.dumps(row), flush=True)
+    # The files keep the order of the runs (motion-major), whichever finished first.
+    rows = [finished[index] for index in range(len(calls))]
     name = "core" + (f"-{args.tag}" if args.tag else "")
     out = HERE / "results"
     out.mkdir(exist_ok=True)

@@ -29,12 +29,12 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import functools
 import json
 import os
 import platform
 import statistics
 import time
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -47,6 +47,7 @@ from snds.data.demonstrations import Demonstrations, Split
 from snds.evaluate import evaluate
 from snds.io import atomic_write
 from snds.metrics import velocity_mse
+from snds.parallel import starmap_unordered
 from snds.policy import PolicyConfig, StablePolicy, float64_copy, project
 from snds.stability import CheckConfig
 from snds.train import TrainConfig, fit
@@ -226,11 +227,10 @@ def _run_all(jobs: list, settings: dict, done: dict, workers: int | None) -> lis
     """Runs the jobs not in ``done`` (rows of an earlier run with the same settings)."""
     rows = {job: done[job] for job in jobs if job in done}
     todo = [job for job in jobs if job not in rows]
-    with ProcessPoolExecutor(max_workers=workers or os.cpu_count()) as pool:
-        futures = {job: pool.submit(run_variant, *job, **settings) for job in todo}
-        for job, future in futures.items():
-            rows[job] = future.result()
-            print(json.dumps(rows[job]), flush=True)
+    run = functools.partial(run_variant, **settings)
+    for index, row in starmap_unordered(run, todo, jobs=workers):
+        rows[todo[index]] = row
+        print(json.dumps(row), flush=True)
     return [rows[job] for job in jobs]
 
 

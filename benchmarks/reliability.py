@@ -36,13 +36,13 @@ import platform
 import statistics
 import time
 from collections.abc import Sequence
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 from _readme import write_readme_section
 
 from snds.benchmark import SweepSettings, resolve_motions
 from snds.io import atomic_write, write_json
+from snds.parallel import starmap_unordered
 from snds.policy import PolicyConfig
 from snds.train import TrainConfig
 
@@ -180,12 +180,13 @@ def _run_cli(
             argv = ["--quiet", "train", *select, "--seed", str(seed), *RECIPES[args.recipe]]
             argv += ["--rollouts", str(settings.rollouts), "--samples", str(settings.samples)]
             pending.append((task, seed, directory, argv + ["--out", str(directory)]))
-    with ProcessPoolExecutor(max_workers=args.jobs or os.cpu_count()) as pool:
-        futures = {pool.submit(_snds_train, job[3]): job for job in pending}
-        for future, (task, seed, directory, _) in futures.items():
-            row = _cli_row(part, task, seed, directory, future.result())
-            write_json(directory / "row.json", row)
-            print(json.dumps(row), flush=True)
+    # Each row is written as its run finishes: an interrupted sweep keeps every finished run.
+    calls = [(argv,) for *_, argv in pending]
+    for index, cpu in starmap_unordered(_snds_train, calls, jobs=args.jobs):
+        task, seed, directory, _ = pending[index]
+        row = _cli_row(part, task, seed, directory, cpu)
+        write_json(directory / "row.json", row)
+        print(json.dumps(row), flush=True)
 
 
 def run_real(args: argparse.Namespace, settings: SweepSettings) -> None:
