@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 import shutil
 import sys
 
@@ -266,3 +267,68 @@ def test_summary_means_by_hand_and_rows_without_a_field():
     assert "| n/a |" in line and "nan" not in line
     mixed = summarise([row(0, 0.001, 4.0), row(1, 0.003, None)]).splitlines()[2]
     assert "| 4.0 ± 0.0 (1 runs) |" in mixed
+
+
+@pytest.fixture(scope="module")
+def pose_sweep(tmp_path_factory):
+    """`snds benchmark --se3` end to end: Line lifted to SE(3), snds, one seed."""
+    out = tmp_path_factory.mktemp("pose")
+    args = ["--motions", "Line", "--se3", "--methods", "snds", "--seeds", "1", "--steps", "30"]
+    assert main(["--quiet", "benchmark", *args, "--quick", "--jobs", "1", "--out", str(out)]) == 0
+    return out
+
+
+def test_pose_task_sweeps_end_to_end_and_resumes(pose_sweep, monkeypatch):
+    from snds.data import split_samples
+    from snds.evaluate import accuracy
+    from snds.models import load_model
+    from snds.policy import float64_copy
+    from snds.spaces import SE3
+
+    # GIVEN the row and the model of the pose sweep
+    row = json.loads((pose_sweep / "results.jsonl").read_text().splitlines()[0])
+    assert (row["motion"], row["se3"], row["samples_checked"]) == ("Line", True, 5000)
+    assert row["decrease_violations"] == 0
+    assert 0.0 <= row["final_angle_error"] <= math.pi and math.isfinite(row["angle_error_along"])
+    task = Task("Line", "snds", 0, None, se3=True)
+    assert task.key == "Line/snds/seed=0/demos=all/se3" and Task.from_row(row) == task
+    policy, description = load_model(pose_sweep / task.model_dir)
+    assert isinstance(policy.space, SE3) and description["kind"] == "se3"
+    assert description["data"] == {"motion": "Line", "demos": None, "orientation_seed": 0}
+    # The pose recipe's training settings, as `snds train --se3` uses them.
+    assert description["train"]["shape_weight"] == 0.01
+    assert description["train"]["position_noise"] == 0.0
+    # THEN the model reproduces the row's velocity MSE on the same split of the same poses
+    demos = task.source().load()
+    split = split_samples(demos, test_fraction=0.2, seed=0)
+    mse = accuracy(float64_copy(policy), demos, split)["velocity_mse"]
+    assert mse == pytest.approx(row["velocity_mse"], rel=1e-9)
+    summary = (pose_sweep / "summary.md").read_text()
+    assert "| Line-se3 | snds | 1 |" in summary and "final angle (rad)" in summary
+    # AND a rerun trains nothing
+    monkeypatch.setattr(benchmark, "run_task", lambda *a: pytest.fail("retrained"))
+    monkeypatch.setattr(benchmark, "run_batch", lambda *a: pytest.fail("retrained"))
+    assert run_sweep([task], out=pose_sweep, jobs=1, **TINY) == [row]
+
+
+def test_pose_tasks_refuse_position_only_methods(tmp_path, capsys):
+    out = tmp_path / "out"
+    code = main(
+        ["--quiet", "benchmark", "--motions", "Line", "--se3", "--methods", "snds,lpvds"]
+        + ["--out", str(out)]
+    )
+    assert code == 2
+    err = capsys.readouterr().err
+    assert "lpvds does not fit SE3 tasks (Line-se3)" in err and "snds, bc" in err
+    assert not out.exists()
+
+
+def test_a_pose_file_is_an_se3_task_and_a_missing_file_is_named(tmp_path):
+    poses = tmp_path / "poses.csv"
+    poses.write_text("demo,t,x,y,z,qx,qy,qz,qw\n")
+    assert resolve_motions(f"Line,{poses}") == ["Line", str(poses)]
+    task = Task(str(poses), "bc", 1)
+    assert task.se3 and task.label == "poses-se3" and task.key.endswith("/se3")
+    assert task.model_dir.parts[:2] == ("models", "poses-se3")
+    with pytest.raises(DataError, match="nowhere.mat: no such demonstrations file"):
+        resolve_motions(str(tmp_path / "nowhere.mat"))

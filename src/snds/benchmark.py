@@ -26,16 +26,20 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from snds.data import LASA_NAMES, load_lasa, split_samples
+from snds.data import LASA_NAMES, DataSource, split_samples
+from snds.data.files import LOADERS
+from snds.data.poses import is_pose_file
 from snds.errors import DataError, SNDSError
 from snds.evaluate import evaluate
 from snds.io import atomic_write
 from snds.method import Fitted
 from snds.methods import METHODS, get_method
 from snds.models import load_model
+from snds.parallel import starmap_unordered
 from snds.plotting import Panel, plot_panels
 from snds.policy import float64_copy
 from snds.runs import RunFolder
+from snds.spaces import SE3, Euclidean, Space
 from snds.stability import ROLLOUTS, SAMPLES, CheckConfig
 
 #: Named groups of LASA motions; ``paper8`` are the eight of the paper's Fig. 4.
@@ -72,6 +76,7 @@ ROW_FIELDS: tuple[str, ...] = (
     "method",
     "seed",
     "demos",
+    "se3",
     "train_seconds",
     "train_cpu_seconds",
     "velocity_mse",
@@ -80,6 +85,8 @@ ROW_FIELDS: tuple[str, ...] = (
     "dtw",
     "dtw_paper",
     "final_distance",
+    "angle_error_along",
+    "final_angle_error",
     "converged_fraction",
     "decrease_violations",
     "samples_checked",
@@ -142,12 +149,13 @@ def _names(spec: str) -> list[str]:
 
 
 def resolve_motions(spec: str) -> list[str]:
-    """Motion names from comma-separated LASA names and/or :data:`MOTION_GROUPS` keys.
+    """Motion names from comma-separated LASA names, :data:`MOTION_GROUPS` keys and paths of
+    demonstrations files (``.mat``, ``.csv``, ``.npz``; a pose file makes an SE(3) task).
 
-    Case is ignored; duplicates are dropped, the first occurrence keeps its place.
+    Case of names is ignored; duplicates are dropped, the first occurrence keeps its place.
 
     Raises:
-        DataError: For an unknown name (the message names it).
+        DataError: For an unknown name or a missing file (the message names it).
     """
     by_lower = {name.lower(): name for name in LASA_NAMES}
     motions: list[str] = []
@@ -156,6 +164,10 @@ def resolve_motions(spec: str) -> list[str]:
             found = MOTION_GROUPS[part.lower()]
         elif part.lower() in by_lower:
             found = (by_lower[part.lower()],)
+        elif Path(part).suffix.lower() in LOADERS:
+            if not Path(part).is_file():
+                raise DataError(f"{part}: no such demonstrations file")
+            found = (part,)
         else:
             raise DataError(
                 f"unknown motion or group {part!r}; groups: {', '.join(MOTION_GROUPS)}; "
@@ -188,50 +200,109 @@ class Task:
     """One run of a sweep: a method trained on a motion with a seed.
 
     Attributes:
-        motion: A LASA motion name.
+        motion: A LASA motion name, or the path of a demonstrations file.
         method: A key of :data:`~snds.methods.METHODS`.
-        seed: Seed of the weights, the mini-batches, the split and the stability check.
-        demos: Train on the first this many demonstrations (None: all 7).
+        seed: Seed of the weights, the mini-batches, the split, the synthetic orientations
+            of an SE(3) task and the stability check.
+        demos: Train on the first this many demonstrations (None: all).
+        se3: Learn a pose policy: position data lifted with synthetic orientations (as
+            ``snds train --se3``); set by itself for a pose file.
     """
 
     motion: str
     method: str
     seed: int
     demos: int | None = None
+    se3: bool = False
+
+    def __post_init__(self) -> None:
+        if not self.se3 and is_pose_file(self.motion):
+            object.__setattr__(self, "se3", True)
 
     @property
     def key(self) -> str:
         """A stable identifier, the same in every process and run (resume matches on it)."""
         demos = "all" if self.demos is None else str(self.demos)
-        return f"{self.motion}/{self.method}/seed={self.seed}/demos={demos}"
+        space = "/se3" if self.se3 else ""
+        return f"{self.motion}/{self.method}/seed={self.seed}/demos={demos}{space}"
+
+    @property
+    def label(self) -> str:
+        """The task's data in tables and figures: the motion or file name, "-se3" for poses."""
+        return self.source().name + ("-se3" if self.se3 else "")
+
+    @property
+    def space(self) -> type[Space]:
+        """The state space the task's policy lives in."""
+        return SE3 if self.se3 else Euclidean
 
     @property
     def model_dir(self) -> Path:
         """Where the run's model goes, relative to the sweep's folder."""
         demos = "all" if self.demos is None else str(self.demos)
-        return Path(MODELS_DIR, self.motion, self.method, f"seed={self.seed}-demos={demos}")
+        return Path(MODELS_DIR, self.label, self.method, f"seed={self.seed}-demos={demos}")
+
+    def source(self) -> DataSource:
+        """Where the task's demonstrations come from."""
+        lasa = Path(self.motion).suffix.lower() not in LOADERS
+        return DataSource(
+            motion=self.motion if lasa else None,
+            file=None if lasa else Path(self.motion),
+            demos=self.demos,
+            poses=self.se3,
+            orientation_seed=self.seed,
+        )
 
     @classmethod
     def from_row(cls, row: dict) -> Task:
         """The task a result row came from."""
         demos = row.get("demos")
         return cls(
-            row["motion"], row["method"], int(row["seed"]), None if demos is None else int(demos)
+            row["motion"],
+            row["method"],
+            int(row["seed"]),
+            None if demos is None else int(demos),
+            bool(row.get("se3", False)),
         )
 
 
 def make_tasks(
-    motions: Sequence[str], methods: Sequence[str], *, seeds: int, demos: int | None = None
+    motions: Sequence[str],
+    methods: Sequence[str],
+    *,
+    seeds: int,
+    demos: int | None = None,
+    se3: bool = False,
 ) -> list[Task]:
-    """Every (motion, method, seed) with seeds 0 .. seeds-1, motion-major."""
+    """Every (motion, method, seed) with seeds 0 .. seeds-1, motion-major; with ``se3`` as
+    pose tasks.
+
+    Raises:
+        SNDSError: If ``seeds`` < 1, or a method cannot fit a task's state space (the
+            baselines fit positions only).
+    """
     if seeds < 1:
         raise SNDSError(f"seeds must be >= 1, got {seeds}")
-    return [
-        Task(motion, method, seed, demos)
+    tasks = [
+        Task(motion, method, seed, demos, se3)
         for motion in motions
         for method in methods
         for seed in range(seeds)
     ]
+    for task in tasks:
+        _check_task(task)
+    return tasks
+
+
+def _check_task(task: Task) -> None:
+    """Refuses a task whose method does not fit its state space, before any work."""
+    method = get_method(task.method)
+    if task.space not in method.spaces:
+        names = ", ".join(name for name, m in METHODS.items() if task.space in m.spaces)
+        raise SNDSError(
+            f"{task.method} does not fit {task.space.__name__} tasks ({task.label}); "
+            f"methods that do: {names}"
+        )
 
 
 class _PeakMemory:
@@ -337,9 +408,7 @@ def run_batch(tasks: Sequence[Task], settings: SweepSettings) -> list[TaskOutput
         with _PeakMemory() as memory:
             data = []
             for task in tasks:
-                demos = load_lasa(task.motion)
-                if task.demos is not None:
-                    demos = demos.first(task.demos)
+                demos = task.source().load()
                 data.append((demos, split_samples(demos, test_fraction=0.2, seed=task.seed)))
             cpu = time.process_time()
             if len(tasks) == 1:
@@ -374,11 +443,13 @@ def run_batch(tasks: Sequence[Task], settings: SweepSettings) -> list[TaskOutput
 def _output(task: Task, fitted: Fitted, metrics: dict, cpu: float, peak: float) -> TaskOutput:
     """A run's result row and model files from its fit and its evaluation."""
     stability = metrics["stability"]
-    row = {
+    # Every row has every column; a metric the task's space does not define is None.
+    row = dict.fromkeys(ROW_FIELDS) | {
         "motion": task.motion,
         "method": task.method,
         "seed": task.seed,
         "demos": task.demos,
+        "se3": task.se3,
         "train_seconds": fitted.seconds,
         "train_cpu_seconds": cpu,
         **{k: float(metrics[k]) for k in ROW_FIELDS if k in metrics},
@@ -388,7 +459,7 @@ def _output(task: Task, fitted: Fitted, metrics: dict, cpu: float, peak: float) 
     # JSON has no NaN (and NaN != NaN breaks resumed-row equality): "not defined" is None.
     row = {k: None if isinstance(v, float) and np.isnan(v) else v for k, v in row.items()}
     extra = {
-        "data": {"motion": task.motion, "demos": task.demos},
+        "data": task.source().record(),
         "split": {"test_fraction": 0.2, "seed": task.seed, "test_demos": None},
         **fitted.record,
     }
@@ -405,9 +476,10 @@ def _units(tasks: Sequence[Task], batch_fits: int) -> list[tuple[Task, ...]]:
         if batch_fits == 1 or not hasattr(get_method(task.method), "fit_many"):
             units.append([task])
             continue
-        unit = filling.get((task.motion, task.method, task.demos))
+        group = (task.motion, task.method, task.demos, task.se3)
+        unit = filling.get(group)
         if unit is None or len(unit) == batch_fits:
-            unit = filling[(task.motion, task.method, task.demos)] = []
+            unit = filling[group] = []
             units.append(unit)
         unit.append(task)
     return [tuple(unit) for unit in units]
@@ -478,13 +550,24 @@ def write_csv(rows: Sequence[dict], path: Path) -> None:
     atomic_write(path, write)
 
 
+def _label(row: dict) -> str:
+    """The row's task in tables and figures (:attr:`Task.label`)."""
+    return Task.from_row(row).label
+
+
 def _groups(rows: Sequence[dict]) -> Iterator[tuple[str, str, list[dict]]]:
     """(motion, method, rows) in the order they first appear."""
     keys: dict[tuple[str, str], list[dict]] = {}
     for row in rows:
-        keys.setdefault((row["motion"], row["method"]), []).append(row)
+        keys.setdefault((_label(row), row["method"]), []).append(row)
     for (motion, method), group in keys.items():
         yield motion, method, group
+
+
+def _angle(group: list[dict], stat) -> str:
+    if all(r.get("final_angle_error") is None for r in group):
+        return "-"
+    return stat(group, "final_angle_error", ".3g")
 
 
 def summarise(rows: Sequence[dict]) -> str:
@@ -493,7 +576,9 @@ def summarise(rows: Sequence[dict]) -> str:
     Errors are given to 3 significant digits (one-demonstration MSEs are below 1e-4). The
     "shortened" column is the mean fraction of stability rollouts in which the guarded Euler
     step had to shorten a step (where plain Euler at the data's step would not decrease V);
-    "n/a" for methods without a Lyapunov function, which take plain steps.
+    "n/a" for methods without a Lyapunov function, which take plain steps. Where some rows
+    are SE(3) tasks, a last column gives their orientation error at the end of the rollouts
+    from the demonstrations' starts (radians; "-" for position tasks).
     """
 
     def stat(group: list[dict], key: str, fmt: str) -> str:
@@ -505,11 +590,12 @@ def summarise(rows: Sequence[dict]) -> str:
         more = f" ({len(values)} runs)" if len(values) < len(group) else ""
         return f"{values.mean():{fmt}} ± {values.std():{fmt}}{more}"
 
+    poses = any(r.get("final_angle_error") is not None for r in rows)
     lines = [
         "| motion | method | runs | velocity MSE (paper scale) | paper's SNDS MSE "
         "| DTW (paper scale) | train s | train CPU s | converged | decrease violations "
-        "| shortened |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "| shortened |" + (" final angle (rad) |" if poses else ""),
+        "|---|---|---|---|---|---|---|---|---|---|---|" + ("---|" if poses else ""),
     ]
     total = 0
     for motion, method, group in _groups(rows):
@@ -525,58 +611,23 @@ def summarise(rows: Sequence[dict]) -> str:
             f"(min {min(r['converged_fraction'] for r in group):.3f}) "
             f"| {violations if checked else 'n/a (no V)'} "
             f"| {stat(group, 'shortened_fraction', '.2f') if checked else 'n/a'} |"
+            + (f" {_angle(group, stat)} |" if poses else "")
         )
     lines += ["", f"Total decrease violations: {total}."]
     return "\n".join(lines) + "\n"
 
 
-# ---------------------------------------------------------------------------------------------
-# Execution: in this process, on a local process pool, or on a Dask cluster.
-
-
-def _run_local(
-    units: Sequence[tuple[Task, ...]], *, jobs: int, settings: SweepSettings
+def _run_units(
+    units: Sequence[tuple[Task, ...]], *, jobs: int, scheduler: str | None, settings: SweepSettings
 ) -> Iterator[TaskOutput]:
-    if jobs == 1:
-        # One worker gains nothing from a process: run here and skip the start-up.
-        for unit in units:
-            yield from _run_unit(unit, settings)
-        return
-    import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor, as_completed
-
-    # spawn, not fork: forking a process whose torch already started threads can deadlock.
-    context = multiprocessing.get_context("spawn")
-    with ProcessPoolExecutor(max_workers=jobs, mp_context=context) as pool:
-        futures = [pool.submit(_run_unit, unit, settings) for unit in units]
-        try:
-            for future in as_completed(futures):
-                yield from future.result()
-        except BaseException:
-            for future in futures:
-                future.cancel()
-            raise
-
-
-def _run_dask(
-    units: Sequence[tuple[Task, ...]], *, scheduler: str, settings: SweepSettings
-) -> Iterator[TaskOutput]:
-    try:
-        from dask.distributed import Client, as_completed
-    except ImportError:
-        raise SNDSError("--scheduler needs Dask: pip install snds[cluster]") from None
-    with Client(scheduler) as client:
-        # pure=False: a rerun must train again, not return a cached result.
-        futures = [
-            client.submit(_run_unit, unit, settings, pure=False, key="+".join(t.key for t in unit))
-            for unit in units
-        ]
-        try:
-            for future in as_completed(futures):
-                yield from future.result()
-        except BaseException:
-            client.cancel(futures)
-            raise
+    """The outputs of the units' runs as they finish: in this process (``jobs == 1``), on a
+    local process pool or on a Dask cluster (:func:`snds.parallel.starmap_unordered`)."""
+    calls = [(unit, settings) for unit in units]
+    keys = ["+".join(task.key for task in unit) for unit in units]
+    for _, outputs in starmap_unordered(
+        _run_unit, calls, jobs=jobs, scheduler=scheduler, keys=keys
+    ):
+        yield from outputs
 
 
 def _store(out: Path, output: TaskOutput) -> None:
@@ -621,7 +672,7 @@ def run_sweep(
     if jobs < 1:
         raise SNDSError(f"jobs must be >= 1, got {jobs}")
     for task in tasks:
-        get_method(task.method)
+        _check_task(task)
         resolve_motions(task.motion)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -629,10 +680,7 @@ def run_sweep(
     done = _read_results(out / RESULTS_FILE)
     pending = [task for task in tasks if task.key not in done]
     units = _units(pending, settings.batch_fits)
-    if scheduler is not None:
-        outputs = _run_dask(units, scheduler=scheduler, settings=settings)
-    else:
-        outputs = _run_local(units, jobs=jobs, settings=settings)
+    outputs = _run_units(units, jobs=jobs, scheduler=scheduler, settings=settings)
     show = progress and sys.stderr.isatty()
     start = time.perf_counter()
     with tqdm(
@@ -686,7 +734,7 @@ def plot_benchmark(rows: Sequence[dict], out: Path) -> list[Path]:
     from matplotlib.figure import Figure
 
     out = Path(out)
-    motions = list(dict.fromkeys(r["motion"] for r in rows))
+    motions = list(dict.fromkeys(_label(r) for r in rows))
     methods = list(dict.fromkeys(r["method"] for r in rows))
     width = 0.8 / max(1, len(methods))
     size = (max(5.0, 1.2 * len(motions) * max(1, len(methods)) ** 0.5 + 2), 4.0)
@@ -696,7 +744,7 @@ def plot_benchmark(rows: Sequence[dict], out: Path) -> list[Path]:
 
     def values(motion: str, method: str, key: str) -> np.ndarray:
         return np.array(
-            [r[key] for r in rows if r["motion"] == motion and r["method"] == method], dtype=float
+            [r[key] for r in rows if _label(r) == motion and r["method"] == method], dtype=float
         )
 
     def violins(key: str, label: str, name: str) -> Path:
@@ -766,16 +814,18 @@ def _panels(rows: Sequence[dict], out: Path, motions: list[str], methods: list[s
     for method in methods:
         line = []
         for motion in motions:
-            runs = [r for r in rows if r["motion"] == motion and r["method"] == method]
+            runs = [r for r in rows if _label(r) == motion and r["method"] == method]
             task = Task.from_row(min(runs, key=lambda r: r["seed"])) if runs else None
             folder = out / task.model_dir if task else None
             if folder is None or not folder.is_dir():
                 line.append(None)
                 continue
             policy, _ = load_model(folder)
-            demos = load_lasa(motion)
-            if task.demos is not None:
-                demos = demos.first(task.demos)
+            if policy.space.dim != 2:
+                # Streamlines need a plane: 3-D positions and poses have none.
+                line.append(None)
+                continue
+            demos = task.source().load()
             line.append(Panel(float64_copy(policy), demos, f"{motion} — {method}"))
         grid.append(line)
     return grid

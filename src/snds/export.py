@@ -7,7 +7,8 @@ so no autograd is needed or traced. For an SE(3) :class:`~snds.se3.PosePolicy` (
 quaternion), and the output the twist (linear velocity in user units per second, then
 the world-frame angular velocity in rad/s) out, with the log map of the orientation and the
 left Jacobian of SO(3) in the graph, so a controller needs no quaternion maths of its own.
-What each kind takes and returns, and how its check samples it, is its :class:`Signature`.
+What an export takes and returns, asked of the policy's space, and how its check samples
+it, is its :class:`Signature`.
 Two formats:
 
 - ONNX (:func:`export_onnx`), run by onnxruntime from any language; the file carries the
@@ -43,9 +44,6 @@ from snds.io import atomic_write
 from snds.nn.lyapunov import Lyapunov, WarpedLyapunov
 from snds.nn.mlp import FourierFeatures
 from snds.policy import Policy, StablePolicy, project
-from snds.se3 import PosePolicy
-from snds.so3 import random_quaternions
-from snds.spaces import SE3, Euclidean, Space
 
 #: Largest accepted difference from the library evaluated in the export's precision,
 #: relative to max(|velocity|, top speed) of each state. float64 graphs agree to rounding
@@ -421,21 +419,14 @@ def _quiet_exporter() -> Iterator[None]:
         logger.setLevel(level)
 
 
-class _PoseExported(torch.nn.Module):
-    """The traced module of a pose policy: poses (B, 7) to twists (B, 6), the library's own
-    ``forward``, in a fixed precision and in eval mode."""
-
-    def __init__(self, policy: PosePolicy, dtype: torch.dtype) -> None:
-        super().__init__()
-        self.policy = _copy(policy, dtype)
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.policy(x)
-
-
 class Signature:
-    """What the exported graph of a position policy computes: positions (B, n) to velocities
-    (B, n), user units; and the random inputs that check it.
+    r"""What the exported graph of a policy computes, asked of its space: states
+    (B, space.dim) to velocities (B, space.tangent_dim), user units (a pose policy: poses
+    (B, 7) to twists (B, 6)); and the random states that check it.
+
+    A velocity's components are compared in the units of the policy's chart (divided by
+    :meth:`~snds.policy.Policy.chart_scales`, one per block: 1 for positions, :math:`L_p`
+    and :math:`L_r` for a twist), where the top speed of the normalisation is the floor.
 
     Arguments:
         policy: The policy.
@@ -443,11 +434,13 @@ class Signature:
 
     def __init__(self, policy: Policy) -> None:
         self.policy = policy
+        self.space = policy.space
         #: Width of an input row.
-        self.inputs = policy.dim
+        self.inputs = self.space.dim
         #: What the graph maps to what, in words.
         self.description = (
-            f"positions (B, {policy.dim}) -> velocities (B, {policy.dim}), user units"
+            f"(B, {self.space.dim}) {self.space.state_text} -> "
+            f"(B, {self.space.tangent_dim}) {self.space.velocity_text}"
         )
 
     def module(self, dtype: torch.dtype) -> torch.nn.Module:
@@ -459,104 +452,57 @@ class Signature:
         return _copy(self.policy, x.dtype)(x)
 
     def random_inputs(self, count: int, rng: np.random.Generator) -> np.ndarray:
-        """Positions in boxes of :data:`STATE_RADII` extents around the target, (count, n)."""
-        center = np.asarray(self.policy.normalization.center, dtype=float)
-        return center + self.policy.normalization.length * _spread(count, self.inputs, rng)
+        """States (count, space.dim): equal shares with positions uniform in the boxes of
+        :data:`STATE_RADII` extents around the target (half-widths), in the order of the
+        radii over and over; orientations (poses) uniform on SO(3)."""
+        states = np.empty((count, self.inputs))
+        extent = float(self.policy.extents()[0])
+        for i, radius in enumerate(STATE_RADII):
+            rows = slice(i, None, len(STATE_RADII))
+            share = len(range(count)[rows])
+            states[rows] = self.space.uniform(self.policy.target, radius * extent, share, rng)
+        return states
 
     def extents(self, x: np.ndarray) -> np.ndarray:
-        """Each input's largest coordinate offset from the target, in extents, shape (B,)."""
-        offset = np.abs(x - self.policy.normalization.center).max(axis=-1)
-        return offset / self.policy.normalization.length
+        """Each input's largest position offset from the target, in extents, shape (B,)."""
+        space, policy = self.space, self.policy
+        offset = np.abs(space.positions(x) - space.positions(policy.target)).max(axis=-1)
+        return offset / float(policy.extents()[0])
 
     def output_scale(self) -> np.ndarray:
         """Divisors (outputs,) of the outputs before they are compared with the top speed."""
-        return np.ones(self.policy.dim)
+        return np.repeat(self.policy.chart_scales(), self.space.velocity_sizes)
 
     def metadata(self) -> dict[str, str]:
-        """The ONNX file's metadata of this kind."""
-        policy = self.policy
+        """The ONNX file's metadata: what goes in and out, the target, the extents and top
+        speeds of each component."""
+        space, policy = self.space, self.policy
+        speeds = _top_speed(policy) * policy.chart_scales()
         return {
-            "snds.dim": str(policy.dim),
-            "snds.input": f"position ({policy.dim} numbers, user units)",
-            "snds.output": f"velocity ({policy.dim} numbers, user units per second)",
-            "snds.target": json.dumps([float(c) for c in policy.normalization.center]),
-            "snds.extent": repr(float(policy.normalization.length)),
-            "snds.top_speed": repr(_top_speed(policy)),
+            "snds.dim": str(space.tangent_dim),
+            "snds.input": space.state_text,
+            "snds.output": space.velocity_text,
+            "snds.target": json.dumps([float(c) for c in policy.target]),
+            **{
+                _EXTENT_KEYS[name]: repr(float(value))
+                for name, value in zip(space.error_names, policy.extents(), strict=True)
+            },
+            **{
+                _SPEED_KEYS[name]: repr(float(value))
+                for name, value in zip(space.velocity_names, speeds, strict=True)
+            },
         }
 
 
-class PoseSignature(Signature):
-    r"""What the exported graph of a pose policy computes: poses (B, 7) to twists (B, 6)
-    (the policy's ``forward``); and the random poses that check it.
-
-    The twist's linear and angular blocks are in different units; the check compares them in
-    the policy's scaled units (divided by :math:`L_p` and :math:`L_r`), where the top speed
-    of the scaled state is the floor, as for positions.
-    """
-
-    policy: PosePolicy
-
-    def __init__(self, policy: PosePolicy) -> None:
-        super().__init__(policy)
-        self.inputs = 7
-        self.description = (
-            "poses (B, 7: x, y, z, qx, qy, qz, qw) -> twists (B, 6: linear velocity in user "
-            "units/s, angular velocity in rad/s, world frame)"
-        )
-
-    def module(self, dtype: torch.dtype) -> torch.nn.Module:
-        return _PoseExported(self.policy, dtype)
-
-    def random_inputs(self, count: int, rng: np.random.Generator) -> np.ndarray:
-        """Positions in boxes of :data:`STATE_RADII` position extents :math:`L_p` around the
-        target, orientations uniform on SO(3) (normalised 4-D Gaussians), (count, 7)."""
-        config = self.policy.config
-        positions = np.asarray(config.target_position) + config.position_scale * _spread(
-            count, 3, rng
-        )
-        return np.concatenate([positions, random_quaternions(count, rng)], 1)
-
-    def extents(self, x: np.ndarray) -> np.ndarray:
-        config = self.policy.config
-        offset = np.abs(x[..., :3] - np.asarray(config.target_position)).max(axis=-1)
-        return offset / config.position_scale
-
-    def output_scale(self) -> np.ndarray:
-        config = self.policy.config
-        return np.array([config.position_scale] * 3 + [config.rotation_scale] * 3)
-
-    def metadata(self) -> dict[str, str]:
-        config = self.policy.config
-        speed = _top_speed(self.policy)
-        return {
-            "snds.dim": "6",
-            "snds.input": "pose (x, y, z in user units; qx, qy, qz, qw, a unit quaternion)",
-            "snds.output": "twist (vx, vy, vz in user units per second; wx, wy, wz in rad/s, "
-            "world frame)",
-            "snds.target": json.dumps(
-                [float(c) for c in (*config.target_position, *config.target_orientation)]
-            ),
-            "snds.extent": repr(float(config.position_scale)),
-            "snds.angle_extent": repr(float(config.rotation_scale)),
-            "snds.top_speed": repr(speed * config.position_scale),
-            "snds.top_angular_speed": repr(speed * config.rotation_scale),
-        }
-
-
-#: The :class:`Signature` of each state space's exports.
-SIGNATURES: dict[type[Space], type[Signature]] = {Euclidean: Signature, SE3: PoseSignature}
+#: The metadata key of each error component's extent (:attr:`~snds.spaces.Space.error_names`).
+_EXTENT_KEYS = {"distance": "snds.extent", "angle": "snds.angle_extent"}
+#: The metadata key of each velocity block's top speed.
+_SPEED_KEYS = {"velocity": "snds.top_speed", "angular_velocity": "snds.top_angular_speed"}
 
 
 def signature(policy: Policy) -> Signature:
-    """The :class:`Signature` of a policy's export, chosen from its space."""
-    return SIGNATURES[type(policy.space)](policy)
-
-
-def _spread(count: int, dim: int, rng: np.random.Generator) -> np.ndarray:
-    """Offsets (count, dim), in extents: equal shares uniform in the boxes of
-    :data:`STATE_RADII` (half-widths)."""
-    radii = np.asarray(STATE_RADII)[np.arange(count) % len(STATE_RADII)]
-    return radii[:, None] * rng.uniform(-1.0, 1.0, size=(count, dim))
+    """The :class:`Signature` of a policy's export."""
+    return Signature(policy)
 
 
 def _trace(policy: Policy, dtype: torch.dtype) -> torch.export.ExportedProgram:
@@ -578,7 +524,7 @@ def export_pt2(policy: Policy, path: str | Path, *, dtype: torch.dtype = torch.f
 
     Returns:
         The path written. Its program maps positions (B, n) to velocities (B, n), user units
-        (a pose policy: poses (B, 7) to twists (B, 6), see :class:`PoseSignature`).
+        (a pose policy: poses (B, 7) to twists (B, 6), see :class:`Signature`).
     """
     _check_dtype(dtype)
     program = _trace(policy, dtype)
@@ -638,7 +584,7 @@ def export_onnx(policy: Policy, path: str | Path, *, dtype: torch.dtype = torch.
 
     Returns:
         The path written. The graph maps ``x`` (B, n) to velocities (B, n), user units (a
-        pose policy: poses (B, 7) to twists (B, 6), see :class:`PoseSignature`); its metadata
+        pose policy: poses (B, 7) to twists (B, 6), see :class:`Signature`); its metadata
         holds ``snds.dim``, ``snds.input`` and ``snds.output`` (what they are, in words),
         ``snds.target`` (a JSON list; a pose policy: position then quaternion),
         ``snds.extent`` (the demonstrations' largest distance from the target),
@@ -988,7 +934,7 @@ def verify(
 
     The library is evaluated in the exported file's precision, on the same inputs: a pose
     policy's export on random poses (orientations uniform on SO(3)) against its
-    :meth:`~snds.se3.PosePolicy.twist`.
+    :meth:`~snds.se3.PosePolicy.forward`.
 
     Arguments:
         path: An ``.onnx`` or ``.pt2`` file written by this module.

@@ -11,13 +11,16 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from typing import ClassVar
 
 from snds.batched import fit_many
 from snds.data.demonstrations import Demonstrations, Normalization, Split
 from snds.data.poses import PoseDemonstrations
 from snds.policy import Policy, PolicyConfig, StablePolicy
+from snds.recipes import recipe_for
 from snds.se3 import make_pose_policy
+from snds.spaces import SE3, Euclidean, Space
 from snds.train import TrainConfig, TrainResult, fit
 
 
@@ -44,11 +47,14 @@ class Method(ABC):
         description: One line for tables and help texts.
         has_lyapunov: Whether its policies carry a Lyapunov function, so whether the decrease
             condition can be checked (a method without one reports 0 samples checked).
+        spaces: The state spaces whose demonstrations it fits (positions only, unless a
+            method says more).
     """
 
     name: str
     description: str
     has_lyapunov: bool
+    spaces: ClassVar[tuple[type[Space], ...]] = (Euclidean,)
 
     @abstractmethod
     def fit(
@@ -126,16 +132,22 @@ def make_policy(
 
 @dataclass(frozen=True)
 class NeuralMethod(Method):
-    """SNDS and BC: a :class:`~snds.policy.StablePolicy` trained by :func:`snds.train.fit`.
+    """SNDS and BC: a network policy (:func:`make_policy`: positions or poses) trained by
+    :func:`snds.train.fit` with the recipe of its state space (:func:`snds.recipes.recipe_for`).
 
     Attributes:
-        policy_config: The architecture; ``stable=False`` gives behavioural cloning.
+        policy_config: The architecture; ``stable=False`` gives behavioural cloning, which
+            has no Lyapunov function (:attr:`has_lyapunov` follows it).
     """
 
     name: str
     description: str
     policy_config: PolicyConfig
-    has_lyapunov: bool
+    spaces: ClassVar[tuple[type[Space], ...]] = (Euclidean, SE3)
+
+    @property
+    def has_lyapunov(self) -> bool:  # type: ignore[override]
+        return self.policy_config.stable
 
     def fit(
         self,
@@ -179,5 +191,7 @@ class NeuralMethod(Method):
         self, demos: Demonstrations, seed: int, steps: int | None
     ) -> tuple[StablePolicy, TrainConfig]:
         """The untrained policy and the training settings of a fit."""
-        config = TrainConfig(seed=seed) if steps is None else TrainConfig(seed=seed, steps=steps)
-        return make_policy(demos, config=self.policy_config, seed=seed), config
+        policy = make_policy(demos, config=self.policy_config, seed=seed)
+        base = recipe_for(policy.space).train
+        config = replace(base, seed=seed, steps=base.steps if steps is None else steps)
+        return policy, config

@@ -32,13 +32,11 @@ METHODS: dict[str, Method] = {
         name="snds",
         description="stable neural dynamical system (projected onto the Lyapunov decrease)",
         policy_config=PolicyConfig(),
-        has_lyapunov=True,
     ),
     "bc": NeuralMethod(
         name="bc",
         description="behavioural cloning: the same network and loss, no stability guarantee",
         policy_config=PolicyConfig(stable=False),
-        has_lyapunov=False,
     ),
     "lpvds": LPVDS(),
     "seds": SEDS(),

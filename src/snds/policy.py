@@ -255,11 +255,27 @@ class Policy(nn.Module, ABC):
         """User states (*, space.dim) to model coordinates (*, n)."""
         return (x - self.center.to(x.dtype)) / self.length
 
+    @property
+    def target(self) -> np.ndarray:
+        """The target state x* in user units, shape (space.dim,), float64."""
+        return np.asarray(self.normalization.center, dtype=np.float64)
+
+    def extents(self) -> np.ndarray:
+        """The demonstrations' extent in each error component of :attr:`space`
+        (:meth:`~snds.spaces.Space.errors`), user units, shape (k,): the positions' first."""
+        return np.array([self.length])
+
+    def chart_scales(self) -> np.ndarray:
+        """User units per unit of the chart that :attr:`normalization` maps, one per error
+        component of :attr:`space`, shape (k,): 1 for positions (the chart is the user
+        space itself)."""
+        return np.ones(len(self.space.error_names))
+
     def model_scale(self) -> np.ndarray:
         """How far one unit of model coordinates reaches in each error component of
         :attr:`space` (:meth:`~snds.spaces.Space.errors`), user units, shape (k,): a state
         within model distance r of the target is within r times this of it."""
-        return np.array([self.length])
+        return self.chart_scales() * self.length
 
     def velocity_to_user(self, z: Tensor, velocity: Tensor) -> Tensor:
         """Model velocities (*, n) at model coordinates z (*, n) to user velocities

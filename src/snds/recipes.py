@@ -11,9 +11,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from snds.policy import PolicyConfig
+from snds.spaces import SE3, Euclidean, Space
 from snds.train import TrainConfig
 
-__all__ = ["ARCHITECTURES", "RECIPES", "Recipe"]
+__all__ = ["ARCHITECTURES", "RECIPES", "SPACE_RECIPES", "Recipe", "recipe_for"]
 
 
 @dataclass(frozen=True)
@@ -45,3 +46,12 @@ RECIPES: dict[str, Recipe] = {
 #: The recipes that differ from ``default`` in the policy's network sizes only: the choices
 #: of ``snds train --architecture``.
 ARCHITECTURES: tuple[str, ...] = ("default", "compact")
+
+#: The recipe whose training settings each state space trains with by default.
+SPACE_RECIPES: dict[type[Space], str] = {Euclidean: "default", SE3: "pose"}
+
+
+def recipe_for(space: Space) -> Recipe:
+    """The recipe a policy in ``space`` trains with by default (:data:`SPACE_RECIPES`):
+    ``default`` for positions, ``pose`` for SE(3)."""
+    return RECIPES[SPACE_RECIPES[type(space)]]

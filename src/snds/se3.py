@@ -141,10 +141,20 @@ class PosePolicy(StablePolicy):
         """Poses (*, 7) to model coordinates (*, 6): the normalised :meth:`chart`."""
         return super().to_model(self.chart(x))
 
-    def model_scale(self) -> np.ndarray:
-        """One model unit reaches L_p x length in position and L_r x length in angle."""
+    @property
+    def target(self) -> np.ndarray:
+        """The target pose (x, y, z, qx, qy, qz, qw), shape (7,), float64."""
         config = self.config
-        return np.array([config.position_scale, config.rotation_scale]) * self.length
+        return np.array([*config.target_position, *config.target_orientation], dtype=np.float64)
+
+    def extents(self) -> np.ndarray:
+        """The position extent L_p and the rotation scale L_r (radians), shape (2,)."""
+        return self.chart_scales()
+
+    def chart_scales(self) -> np.ndarray:
+        """The chart y divides positions by L_p and rotation vectors by L_r: (L_p, L_r)."""
+        config = self.config
+        return np.array([config.position_scale, config.rotation_scale], dtype=np.float64)
 
     def velocity_to_user(self, z: Tensor, velocity: Tensor) -> Tensor:
         r"""Model velocities (*, 6) at model coordinates z (*, 6) to twists

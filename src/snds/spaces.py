@@ -45,6 +45,8 @@ class Space(ABC):
         velocity_names: Names of the blocks of a velocity row, the first the positions' own
             velocity ("velocity"; a twist adds "angular_velocity").
         velocity_sizes: Their sizes, summing to :attr:`tangent_dim`.
+        state_text: What a state row holds, in words (exported models' metadata).
+        velocity_text: What a velocity row holds, in words.
     """
 
     dim: int
@@ -53,6 +55,8 @@ class Space(ABC):
     error_names: tuple[str, ...]
     velocity_names: tuple[str, ...]
     velocity_sizes: tuple[int, ...]
+    state_text: str
+    velocity_text: str
 
     @abstractmethod
     def advance(self, x: Tensor, h: Tensor, velocity: Tensor) -> Tensor:
@@ -123,6 +127,14 @@ class Euclidean(Space):
         return (self.dim,)
 
     @property
+    def state_text(self) -> str:  # type: ignore[override]
+        return f"position ({self.dim} numbers, user units)"
+
+    @property
+    def velocity_text(self) -> str:  # type: ignore[override]
+        return f"velocity ({self.dim} numbers, user units per second)"
+
+    @property
     def tangent_dim(self) -> int:  # type: ignore[override]
         return self.dim
 
@@ -169,6 +181,10 @@ class SE3(Space):
     error_names: ClassVar[tuple[str, ...]] = ("distance", "angle")
     velocity_names: ClassVar[tuple[str, ...]] = ("velocity", "angular_velocity")
     velocity_sizes: ClassVar[tuple[int, ...]] = (3, 3)
+    state_text: ClassVar[str] = "pose (x, y, z in user units; qx, qy, qz, qw, a unit quaternion)"
+    velocity_text: ClassVar[str] = (
+        "twist (vx, vy, vz in user units per second; wx, wy, wz in rad/s, world frame)"
+    )
 
     def advance(self, x: Tensor, h: Tensor, velocity: Tensor) -> Tensor:
         h = h.unsqueeze(-1)

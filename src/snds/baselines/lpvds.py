@@ -52,7 +52,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import asdict, dataclass
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -231,7 +231,7 @@ class LPVDS(Method):
 
     name: str = "lpvds"
     description: str = "LPV-DS: Gaussian-mixture blend of linear systems, shared V = x'Px (LMIs)"
-    has_lyapunov: bool = True
+    has_lyapunov: ClassVar[bool] = True
     components: int | None = None
     max_components: int = 20
     eps: float = 0.05
@@ -300,9 +300,7 @@ class LPVDS(Method):
         record = {
             "lpvds": {
                 "settings": {
-                    k: val
-                    for k, val in asdict(self).items()
-                    if k not in ("name", "description", "has_lyapunov")
+                    k: val for k, val in asdict(self).items() if k not in ("name", "description")
                 },
                 "components": mixture.components,
                 "bic": {str(k): val for k, val in mixture.bic.items()},

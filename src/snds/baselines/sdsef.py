@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, field, replace
+from typing import ClassVar
 
 import torch
 from torch import Tensor, nn
@@ -283,7 +284,7 @@ class SDSEF(Method):
     train_config: TrainConfig = field(
         default_factory=lambda: TrainConfig(steps=3000, lr=1e-2, position_noise=0.0)
     )
-    has_lyapunov: bool = True
+    has_lyapunov: ClassVar[bool] = True
 
     def fit(
         self,

@@ -41,6 +41,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import asdict, dataclass
+from typing import ClassVar
 
 import numpy as np
 import torch
@@ -253,7 +254,7 @@ class SEDS(Method):
 
     name: str = "seds"
     description: str = "SEDS: Gaussian mixture regression of stable linear systems (V = |x|^2)"
-    has_lyapunov: bool = True
+    has_lyapunov: ClassVar[bool] = True
     components: int | None = None
     max_components: int = 15
     eps: float = 0.02
@@ -337,9 +338,7 @@ class SEDS(Method):
         record = {
             "seds": {
                 "settings": {
-                    k: val
-                    for k, val in asdict(self).items()
-                    if k not in ("name", "description", "has_lyapunov")
+                    k: val for k, val in asdict(self).items() if k not in ("name", "description")
                 },
                 "components": mixture.components,
                 "bic": {str(k): val for k, val in mixture.bic.items()},

@@ -9,15 +9,13 @@ import torch
 
 from snds.data import (
     MAX_END_SPREAD,
+    DataSource,
     Demonstrations,
     Split,
-    load_demonstrations,
-    load_lasa,
     no_split,
     split_demos,
     split_samples,
 )
-from snds.data.poses import is_pose_file, load_poses, with_synthetic_orientations
 from snds.errors import ConfigError, SNDSError
 from snds.models import load_model
 from snds.obstacles import Scene, load_scene, parse_obstacle, parse_workspace
@@ -37,24 +35,19 @@ def _scene(args: argparse.Namespace):
     return Scene(obstacles=obstacles, workspace=workspace)
 
 
-def _load_data(
-    motion: str | None,
-    data: Path | None,
-    demos: int | list[int] | None,
-    max_end_spread: float | None = None,
-) -> Demonstrations:
-    spread = MAX_END_SPREAD if max_end_spread is None else max_end_spread
-    if motion is None and demos is not None:
-        # Selected before the target is chosen: a file may end at several places.
-        select = list(range(demos)) if isinstance(demos, int) else demos
-        return load_demonstrations(data, select=select, max_end_spread=spread)
-    if motion is not None:
-        loaded = load_lasa(motion)
-    else:
-        loaded = load_demonstrations(data, max_end_spread=spread)
-    if demos is None:
-        return loaded
-    return loaded.first(demos) if isinstance(demos, int) else loaded.select(demos)
+def _data_source(args: argparse.Namespace, *, poses: bool = False, seed: int = 0) -> DataSource:
+    """The demonstrations that ``--motion`` / ``--data``, ``--demos`` and ``--max-end-spread``
+    name; with ``poses`` in SE(3) (synthetic orientations seeded by ``seed`` for position
+    data; automatic for a pose file)."""
+    spread = MAX_END_SPREAD if args.max_end_spread is None else args.max_end_spread
+    return DataSource(
+        motion=args.motion,
+        file=args.data,
+        demos=args.demos,
+        max_end_spread=spread,
+        poses=poses,
+        orientation_seed=seed,
+    )
 
 
 def _make_split(demos: Demonstrations, record: dict) -> Split:
@@ -65,13 +58,6 @@ def _make_split(demos: Demonstrations, record: dict) -> Split:
     if fraction <= 0:
         return no_split(demos)
     return split_samples(demos, test_fraction=fraction, seed=int(record.get("seed", 0)))
-
-
-def _source(args: argparse.Namespace) -> dict:
-    if args.motion is not None:
-        return {"motion": args.motion, "demos": args.demos}
-    spread = MAX_END_SPREAD if args.max_end_spread is None else args.max_end_spread
-    return {"file": str(Path(args.data).resolve()), "demos": args.demos, "max_end_spread": spread}
 
 
 def _check_sizes(args: argparse.Namespace) -> None:
@@ -93,21 +79,16 @@ def _model_and_data(args: argparse.Namespace) -> tuple[Policy, dict, Demonstrati
     """A saved model, its record, and the demonstrations it was trained on (or those that
     ``--motion`` / ``--data`` name), in the model's space: poses for a pose model."""
     policy, description = load_model(args.model)
-    source = description.get("data", {})
+    recorded = description.get("data") or {}
     poses = isinstance(policy.space, SE3)
-    seed = int(source.get("orientation_seed", 0))
     if args.motion is not None or args.data is not None:
-        demos = _task_data(
-            args.motion, args.data, args.demos, args.max_end_spread, poses=poses, seed=seed
-        )
-    elif "motion" in source or "file" in source:
-        data = Path(source["file"]) if "file" in source else None
-        spread = source.get("max_end_spread")
-        demos = _task_data(
-            source.get("motion"), data, source.get("demos"), spread, poses=poses, seed=seed
-        )
+        seed = int(recorded.get("orientation_seed", 0))
+        source = _data_source(args, poses=poses, seed=seed)
+    elif "motion" in recorded or "file" in recorded:
+        source = DataSource.from_record(recorded, poses=poses)
     else:
         raise SNDSError(f"{args.model}: no data recorded; pass --motion or --data")
+    demos = source.load()
     width = demos[0].states.shape[1]
     if width != policy.space.dim:
         raise SNDSError(
@@ -120,22 +101,6 @@ def _refuse_obstacles(policy: Policy, command: str) -> None:
     """Obstacles are for position models here (``snds simulate`` takes both)."""
     if not isinstance(policy.space, Euclidean):
         raise ConfigError(f"obstacles: snds {command} takes position models (simulate: both)")
-
-
-def _task_data(
-    motion: str | None,
-    data: Path | None,
-    demos: int | list[int] | None,
-    max_end_spread: float | None,
-    *,
-    poses: bool,
-    seed: int,
-):
-    """Positions (:func:`_load_data`), or with ``poses`` pose demonstrations
-    (:func:`_pose_data`, synthetic orientations seeded by ``seed``)."""
-    if poses:
-        return _pose_data(motion, data, demos, seed, max_end_spread)
-    return _load_data(motion, data, demos, max_end_spread)
 
 
 def _write_plots(
@@ -178,21 +143,3 @@ def _guard_summary(stability: dict) -> str:
         f"(data: {stability['dt']:.3g} s), guard shortened steps in "
         f"{stability['shortened_fraction']:.0%} of rollouts"
     )
-
-
-def _is_pose_file(path: Path) -> bool:
-    return is_pose_file(path)
-
-
-def _pose_data(
-    motion: str | None, data: Path | None, demos, seed: int, max_end_spread: float | None = None
-):
-    """Pose demonstrations: a pose file as it is, or position data (LASA, .mat, ...) lifted
-    with synthetic orientations seeded by ``seed`` (see
-    :func:`snds.data.poses.with_synthetic_orientations`)."""
-    if data is not None and _is_pose_file(data):
-        select = list(range(demos)) if isinstance(demos, int) else demos
-        spread = MAX_END_SPREAD if max_end_spread is None else max_end_spread
-        return load_poses(data, select=select, max_end_spread=spread)
-    loaded = _load_data(motion, data, demos, max_end_spread)
-    return with_synthetic_orientations(loaded, seed=seed)

@@ -17,7 +17,15 @@ def register(commands: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("--methods", default="snds,bc", help="comma-separated, e.g. snds,bc")
     parser.add_argument(
-        "--motions", default="paper8", help="LASA names and/or groups: paper8, multi, all"
+        "--motions",
+        default="paper8",
+        help="LASA names, groups (paper8, multi, all) and/or demonstrations files (.mat, .csv, "
+        ".npz; a pose file is an SE(3) task)",
+    )
+    parser.add_argument(
+        "--se3",
+        action="store_true",
+        help="pose tasks: position data get synthetic orientations (methods: snds, bc)",
     )
     parser.add_argument("--demos", type=int, default=None, help="the first K demonstrations")
     parser.add_argument("--seeds", type=int, default=3, help="seeds 0 .. N-1")
@@ -50,6 +58,7 @@ def run(args: argparse.Namespace) -> int:
         benchmark.resolve_methods(args.methods),
         seeds=args.seeds,
         demos=args.demos,
+        se3=args.se3,
     )
     base = (
         benchmark.SweepSettings.quick(steps=args.steps)

@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from snds.cli._args import _data_arguments, _obstacle_arguments
-from snds.cli._common import _model_and_data, _scene, _source
+from snds.cli._common import _data_source, _model_and_data, _scene
 from snds.errors import SNDSError
 from snds.io import to_jsonable, write_json
 
@@ -117,7 +117,7 @@ def run(args: argparse.Namespace) -> int:
     out = args.out or args.model / f"sim-{config.robot}"
     record = {
         "model": str(Path(args.model).resolve()),
-        "data": _source(args) if args.motion or args.data else None,
+        "data": _data_source(args).record() if args.motion or args.data else None,
         "start_demo": args.start_demo,
         **result.to_dict(),
     }

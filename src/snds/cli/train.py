@@ -15,17 +15,15 @@ from pathlib import Path
 from snds.cli._args import _check_arguments, _data_arguments, _index_list
 from snds.cli._common import (
     _check_config,
-    _is_pose_file,
+    _data_source,
     _make_split,
-    _source,
     _summarise,
-    _task_data,
     _write_plots,
 )
 from snds.evaluate import evaluate
 from snds.method import make_policy
 from snds.policy import DEFAULT_WARP_LAYERS, Policy, PolicyConfig
-from snds.recipes import ARCHITECTURES, RECIPES
+from snds.recipes import ARCHITECTURES, RECIPES, recipe_for
 from snds.runs import RunFolder
 from snds.train import TrainConfig, TrainResult, fit
 
@@ -145,15 +143,13 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     check = _check_config(args)
-    poses = args.se3 or (args.data is not None and _is_pose_file(args.data))
-    demos = _task_data(
-        args.motion, args.data, args.demos, args.max_end_spread, poses=poses, seed=args.seed
-    )
-    name = demos.name or Path(str(args.data)).stem
-    out = args.out or Path("runs") / (f"{name}-se3" if poses else name)
-    split_record, train_config = _train_settings(args, POSE.train if poses else DEFAULT.train)
-    split = _make_split(demos, split_record)
+    source = _data_source(args, poses=args.se3, seed=args.seed)
+    demos = source.load()
+    name = demos.name or source.name
+    out = args.out or Path("runs") / (f"{name}-se3" if source.poses else name)
     policy = make_policy(demos, config=_policy_config(args), seed=args.seed)
+    split_record, train_config = _train_settings(args, recipe_for(policy.space).train)
+    split = _make_split(demos, split_record)
     folder = RunFolder(out)
     folder.prepare(resume=args.resume)
     checkpoint = folder.checkpoint
@@ -168,8 +164,7 @@ def run(args: argparse.Namespace) -> int:
         checkpoint=checkpoint,
         checkpoint_every=args.checkpoint_every,
     )
-    source = _source(args) | ({"orientation_seed": args.seed} if poses else {})
-    _save_run(out, policy, result, data=source, split=split_record, train=train_config)
+    _save_run(out, policy, result, data=source.record(), split=split_record, train=train_config)
     metrics = evaluate(policy, demos, split, check=check)
     metrics["train_seconds"] = result.seconds
     folder.write_metrics(metrics)

@@ -11,11 +11,13 @@ from snds.data.demonstrations import (
 )
 from snds.data.files import load_csv, load_demonstrations, load_mat, load_npz
 from snds.data.lasa import LASA_NAMES, load_lasa
+from snds.data.source import DataSource
 from snds.data.targets import MAX_END_SPREAD, common_target
 
 __all__ = [
     "MAX_END_SPREAD",
     "LASA_NAMES",
+    "DataSource",
     "Demonstration",
     "Demonstrations",
     "Normalization",

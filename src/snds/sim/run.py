@@ -278,8 +278,9 @@ class PositionCommander:
     ) -> PositionCommander:
         """The commander of a run on ``robot``, holding the rest orientation."""
         scale = config.scale if config.scale is not None else default_scale(robot, policy)
-        target = np.asarray(policy.normalization.center, dtype=float)
-        return cls(policy, Placement.for_task(robot, target, scale), rest_orientation, config)
+        return cls(
+            policy, Placement.for_task(robot, policy.target, scale), rest_orientation, config
+        )
 
     def start_pose(self, start: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The world pose of a start state (n,): its position, the held orientation."""
@@ -347,10 +348,7 @@ class PoseCommander:
         cls, policy: PosePolicy, robot: Robot, rest_orientation: np.ndarray, config: SimConfig
     ) -> PoseCommander:
         """The commander of a run on ``robot``, the target orientation at the rest one."""
-        # The pose policy's normalisation is of its scaled 6-D state; the positions' extent
-        # in user units is its position scale L_p.
-        extent = float(policy.config.position_scale)
-        scale = config.scale if config.scale is not None else robot.reach / extent
+        scale = config.scale if config.scale is not None else default_scale(robot, policy)
         placement = PosePlacement.for_task(
             robot,
             np.asarray(policy.config.target_position, dtype=float),
@@ -531,8 +529,9 @@ class SimResult:
 
 
 def default_scale(robot: Robot, policy: Policy) -> float:
-    """Metres per user unit that fit a position policy's demonstrations into the robot's reach."""
-    return robot.reach / float(policy.normalization.length)
+    """Metres per user unit that fit a policy's demonstrations (their position extent) into
+    the robot's reach."""
+    return robot.reach / float(policy.extents()[0])
 
 
 def simulate(policy: Policy, start: np.ndarray, config: SimConfig) -> SimResult:

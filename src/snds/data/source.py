@@ -1,0 +1,134 @@
+"""Where a task's demonstrations come from: one description for the CLI, the benchmark and
+the saved model's record.
+
+A :class:`DataSource` names a LASA motion or a file, which of its demonstrations to keep, and
+whether the task is in SE(3). :meth:`DataSource.load` gives the demonstrations in the task's
+space: positions (:class:`~snds.data.Demonstrations`), or poses
+(:class:`~snds.data.poses.PoseDemonstrations`): a pose file as it is, position data lifted
+with synthetic orientations (:func:`~snds.data.poses.with_synthetic_orientations`).
+:meth:`DataSource.record` is the ``data`` block of ``model.json``, and
+:meth:`DataSource.from_record` reads it back.
+
+    DataSource(motion="Sine", demos=3).load()                     # 3 LASA Sine demonstrations
+    DataSource(file=Path("arm.mat"), demos=(0, 2)).load()         # demonstrations 0 and 2
+    DataSource(file=Path("Messy_snake.mat"), demos=1, poses=True).load()  # lifted to SE(3)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from snds.data.demonstrations import Demonstrations
+from snds.data.files import load_demonstrations
+from snds.data.lasa import load_lasa
+from snds.data.poses import (
+    PoseDemonstrations,
+    is_pose_file,
+    load_poses,
+    with_synthetic_orientations,
+)
+from snds.data.targets import MAX_END_SPREAD
+from snds.errors import DataError
+
+__all__ = ["DataSource"]
+
+
+@dataclass(frozen=True, kw_only=True)
+class DataSource:
+    """The demonstrations of a task.
+
+    Attributes:
+        motion: A LASA motion name (case ignored); exactly one of ``motion`` and ``file``.
+        file: A demonstrations file (``.mat``, ``.csv``, ``.npz``; a pose ``.csv``/``.npz``).
+        demos: Keep the first this many demonstrations, or these ones (0-based, in order);
+            None: all. From a file they are selected before the common target is chosen,
+            so that a subset ending at one place can be used from a file ending at several.
+        max_end_spread: Largest accepted distance of a file's demonstration end from the
+            common target, in extents (see :func:`~snds.data.targets.common_target`).
+        poses: Whether the task is in SE(3). Automatic for a pose file; position data are
+            then lifted with synthetic orientations.
+        orientation_seed: Seed of the synthetic orientations.
+    """
+
+    motion: str | None = None
+    file: Path | None = None
+    demos: int | tuple[int, ...] | None = None
+    max_end_spread: float = MAX_END_SPREAD
+    poses: bool = False
+    orientation_seed: int = 0
+
+    def __post_init__(self) -> None:
+        if (self.motion is None) == (self.file is None):
+            raise DataError("a data source names either a LASA motion or a file, not both")
+        if self.file is not None:
+            object.__setattr__(self, "file", Path(self.file))
+            if is_pose_file(self.file):
+                object.__setattr__(self, "poses", True)
+        if isinstance(self.demos, list):
+            object.__setattr__(self, "demos", tuple(self.demos))
+        if isinstance(self.demos, int) and self.demos < 1:
+            raise DataError(f"demos must be >= 1, got {self.demos}")
+
+    @property
+    def name(self) -> str:
+        """The motion's name or the file's stem."""
+        return self.motion if self.motion is not None else self.file.stem
+
+    def load(self) -> Demonstrations | PoseDemonstrations:
+        """The demonstrations, in the task's space.
+
+        Raises:
+            DataError: If the motion or file cannot be used (the message names it).
+        """
+        if self.file is not None and is_pose_file(self.file):
+            return load_poses(self.file, select=self._indices(), max_end_spread=self.max_end_spread)
+        positions = self._positions()
+        if not self.poses:
+            return positions
+        return with_synthetic_orientations(positions, seed=self.orientation_seed)
+
+    def record(self) -> dict:
+        """The JSON-ready description saved with a model (``model.json``'s ``data``)."""
+        demos = list(self.demos) if isinstance(self.demos, tuple) else self.demos
+        if self.motion is not None:
+            record: dict = {"motion": self.motion, "demos": demos}
+        else:
+            record = {
+                "file": str(self.file.resolve()),
+                "demos": demos,
+                "max_end_spread": self.max_end_spread,
+            }
+        return record | ({"orientation_seed": self.orientation_seed} if self.poses else {})
+
+    @classmethod
+    def from_record(cls, record: dict, *, poses: bool = False) -> DataSource:
+        """The source a :meth:`record` describes; ``poses`` for a pose model's data."""
+        if "motion" not in record and "file" not in record:
+            raise DataError("the data record names neither a motion nor a file")
+        spread = record.get("max_end_spread")
+        return cls(
+            motion=record.get("motion"),
+            file=Path(record["file"]) if "file" in record else None,
+            demos=record.get("demos"),
+            max_end_spread=MAX_END_SPREAD if spread is None else float(spread),
+            poses=poses,
+            orientation_seed=int(record.get("orientation_seed", 0)),
+        )
+
+    def _indices(self) -> list[int] | None:
+        if self.demos is None:
+            return None
+        return list(range(self.demos)) if isinstance(self.demos, int) else list(self.demos)
+
+    def _positions(self) -> Demonstrations:
+        if self.file is not None:
+            return load_demonstrations(
+                self.file, select=self._indices(), max_end_spread=self.max_end_spread
+            )
+        loaded = load_lasa(self.motion)
+        if self.demos is None:
+            return loaded
+        if isinstance(self.demos, int):
+            return loaded.first(self.demos)
+        return loaded.select(self.demos)
