@@ -1,7 +1,9 @@
 import dataclasses
 import json
 import pickle
+from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from safetensors.torch import save_file
@@ -151,3 +153,24 @@ def test_a_warped_policy_round_trips_and_records_its_warp(spiral, tmp_path):
     x = torch.randn(1000, 2, dtype=torch.float64) * 20
     assert torch.equal(policy(x), loaded(x))
     assert description["policy"]["warp_layers"] == 3
+
+
+FIXTURES = Path(__file__).parent / "fixtures" / "models-c52752d"
+
+
+@pytest.mark.parametrize("name", ["sine", "angle-bc", "snake-se3"])
+def test_models_saved_before_one_pipeline_give_the_same_velocities(name):
+    # GIVEN model folders written by `snds train` at commit c52752d (before the SE(3) twins
+    # became one pipeline): a warped SNDS policy (Sine), a compact BC one (Angle) and a pose
+    # policy (Messy Snake, --se3), with that code's float64 velocities at 96 states 3 extents
+    # around the target (poses: orientations uniform on SO(3))
+    expected = json.loads((FIXTURES / "velocities.json").read_text())[name]
+    policy, _ = load_model(FIXTURES / name)
+    policy = policy.double()
+    # WHEN today's code loads them and maps the same user states
+    with torch.no_grad():
+        velocities = policy(torch.tensor(expected["states"], dtype=torch.float64)).numpy()
+    # THEN the velocities (twists) are those of then, to 1e-12 of the largest
+    reference = np.array(expected["velocities"])
+    assert velocities.shape == reference.shape
+    assert np.abs(velocities - reference).max() <= 1e-12 * np.abs(reference).max()
