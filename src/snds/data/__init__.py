@@ -3,6 +3,7 @@
 from snds.data.demonstrations import (
     Demonstration,
     Demonstrations,
+    DemonstrationSet,
     Normalization,
     Split,
     no_split,
@@ -19,6 +20,7 @@ __all__ = [
     "LASA_NAMES",
     "DataSource",
     "Demonstration",
+    "DemonstrationSet",
     "Demonstrations",
     "Normalization",
     "Split",

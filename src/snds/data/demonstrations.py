@@ -74,8 +74,74 @@ class Demonstration:
         return np.diff(self.times)
 
 
+class DemonstrationSet:
+    """What every set of demonstrations of one task has, whatever its states: a sequence of
+    demonstrations (``demos``, each with ``positions`` (T, p), ``velocities`` (T, m) whose
+    first p columns are the positions' own, and ``times`` (T,)) and a ``target`` state whose
+    first p numbers are the target position. :class:`Demonstrations` (positions) and
+    :class:`~snds.data.poses.PoseDemonstrations` (poses) are its two kinds."""
+
+    demos: tuple
+    target: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.demos)
+
+    def __getitem__(self, index: int):
+        return self.demos[index]
+
+    def __iter__(self):
+        return iter(self.demos)
+
+    def select(self, indices: list[int] | tuple[int, ...] | range) -> DemonstrationSet:
+        """The demonstrations at ``indices``, in that order, with the same target."""
+        raise NotImplementedError
+
+    def first(self, k: int) -> DemonstrationSet:
+        """The first ``k`` demonstrations."""
+        if not 1 <= k <= len(self.demos):
+            raise DataError(f"asked for {k} demonstrations, the set has {len(self.demos)}")
+        return self.select(range(k))
+
+    def _check_indices(self, indices: list[int]) -> None:
+        for i in indices:
+            if not 0 <= i < len(self.demos):
+                raise DataError(f"demonstration index {i} out of range 0..{len(self.demos) - 1}")
+
+    def positions(self) -> np.ndarray:
+        """All positions stacked, shape (sum T, p)."""
+        return np.concatenate([demo.positions for demo in self.demos])
+
+    def velocities(self) -> np.ndarray:
+        """All velocities stacked, shape (sum T, m)."""
+        return np.concatenate([demo.velocities for demo in self.demos])
+
+    def extent(self) -> float:
+        """Largest distance of a demonstrated position from the target position (the task's
+        size)."""
+        positions = self.positions()
+        return float(np.linalg.norm(positions - self.target[: positions.shape[1]], axis=-1).max())
+
+    def max_speed(self) -> float:
+        """Largest demonstrated speed of the positions, user units per second."""
+        return float(
+            max(
+                np.linalg.norm(demo.velocities[:, : demo.positions.shape[1]], axis=-1).max()
+                for demo in self.demos
+            )
+        )
+
+    def max_duration(self) -> float:
+        """Duration of the longest demonstration, in seconds."""
+        return max(float(demo.times[-1] - demo.times[0]) for demo in self.demos)
+
+    def mean_dt(self) -> float:
+        """Mean sampling step over all demonstrations, in seconds."""
+        return float(np.mean(np.concatenate([np.diff(demo.times) for demo in self.demos])))
+
+
 @dataclass(frozen=True)
-class Demonstrations:
+class Demonstrations(DemonstrationSet):
     """A set of demonstrations of one task, all ending at a common target.
 
     Attributes:
@@ -103,15 +169,6 @@ class Demonstrations:
         object.__setattr__(self, "demos", demos)
         object.__setattr__(self, "target", target)
 
-    def __len__(self) -> int:
-        return len(self.demos)
-
-    def __getitem__(self, index: int) -> Demonstration:
-        return self.demos[index]
-
-    def __iter__(self):
-        return iter(self.demos)
-
     @property
     def dim(self) -> int:
         """State dimension n."""
@@ -120,40 +177,8 @@ class Demonstrations:
     def select(self, indices: list[int] | tuple[int, ...] | range) -> Demonstrations:
         """The demonstrations at ``indices``, in that order, with the same target."""
         indices = list(indices)
-        for i in indices:
-            if not 0 <= i < len(self.demos):
-                raise DataError(f"demonstration index {i} out of range 0..{len(self.demos) - 1}")
+        self._check_indices(indices)
         return Demonstrations(tuple(self.demos[i] for i in indices), self.target, self.name)
-
-    def first(self, k: int) -> Demonstrations:
-        """The first ``k`` demonstrations."""
-        if not 1 <= k <= len(self.demos):
-            raise DataError(f"asked for {k} demonstrations, the set has {len(self.demos)}")
-        return self.select(range(k))
-
-    def positions(self) -> np.ndarray:
-        """All positions stacked, shape (sum T, n)."""
-        return np.concatenate([demo.positions for demo in self.demos])
-
-    def velocities(self) -> np.ndarray:
-        """All velocities stacked, shape (sum T, n)."""
-        return np.concatenate([demo.velocities for demo in self.demos])
-
-    def extent(self) -> float:
-        """Largest distance of any demonstrated position from the target (the task's size)."""
-        return float(np.linalg.norm(self.positions() - self.target, axis=-1).max())
-
-    def max_speed(self) -> float:
-        """Largest demonstrated speed."""
-        return float(np.linalg.norm(self.velocities(), axis=-1).max())
-
-    def max_duration(self) -> float:
-        """Duration of the longest demonstration, in seconds."""
-        return max(demo.duration for demo in self.demos)
-
-    def mean_dt(self) -> float:
-        """Mean sampling step over all demonstrations, in seconds."""
-        return float(np.mean(np.concatenate([demo.dt for demo in self.demos])))
 
 
 @dataclass(frozen=True)

@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from snds.data.demonstrations import Demonstration, Demonstrations
+from snds.data.demonstrations import Demonstration, Demonstrations, DemonstrationSet
 from snds.data.files import (
     DEFAULT_DT,
     _context,
@@ -147,7 +147,7 @@ class PoseDemonstration:
 
 
 @dataclass(frozen=True)
-class PoseDemonstrations:
+class PoseDemonstrations(DemonstrationSet):
     """A set of pose demonstrations of one task, all ending at a common target pose.
 
     Attributes:
@@ -174,34 +174,16 @@ class PoseDemonstrations:
         object.__setattr__(self, "target_position", position)
         object.__setattr__(self, "target_orientation", orientation[0])
 
-    def __len__(self) -> int:
-        return len(self.demos)
-
-    def __getitem__(self, index: int) -> PoseDemonstration:
-        return self.demos[index]
-
-    def __iter__(self):
-        return iter(self.demos)
-
     def select(self, indices: Sequence[int]) -> PoseDemonstrations:
         """The demonstrations at ``indices``, in that order, with the same target."""
-        for i in indices:
-            if not 0 <= i < len(self.demos):
-                raise DataError(f"demonstration index {i} out of range 0..{len(self.demos) - 1}")
+        indices = list(indices)
+        self._check_indices(indices)
         return PoseDemonstrations(
             tuple(self.demos[i] for i in indices),
             self.target_position,
             self.target_orientation,
             self.name,
         )
-
-    def positions(self) -> np.ndarray:
-        """All positions stacked, shape (sum T, 3)."""
-        return np.concatenate([demo.positions for demo in self.demos])
-
-    def extent(self) -> float:
-        """Largest distance of a demonstrated position from the target position."""
-        return float(np.linalg.norm(self.positions() - self.target_position, axis=-1).max())
 
     def angle_extent(self) -> float:
         """Largest angle (radians) of a demonstrated orientation from the target orientation."""
@@ -213,18 +195,6 @@ class PoseDemonstrations:
     def target(self) -> np.ndarray:
         """The target pose as one row (x, y, z, qx, qy, qz, qw), shape (7,)."""
         return np.concatenate([self.target_position, self.target_orientation])
-
-    def max_speed(self) -> float:
-        """Largest demonstrated linear speed, in user units per second."""
-        return float(max(np.linalg.norm(demo.velocities[:, :3], axis=-1).max() for demo in self))
-
-    def max_duration(self) -> float:
-        """Duration of the longest demonstration, in seconds."""
-        return max(demo.duration for demo in self.demos)
-
-    def mean_dt(self) -> float:
-        """Mean sampling step over all demonstrations, in seconds."""
-        return float(np.mean(np.concatenate([np.diff(demo.times) for demo in self.demos])))
 
 
 def angles_to(orientations: np.ndarray, target: np.ndarray) -> np.ndarray:
