@@ -3,6 +3,8 @@ pipeline (check, accuracy) run on a policy of each."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -11,9 +13,10 @@ from snds.data import no_split
 from snds.data.poses import with_synthetic_orientations
 from snds.evaluate import accuracy
 from snds.method import make_policy
+from snds.models import load_model, save_model
 from snds.policy import float64_copy
 from snds.spaces import SE3, Euclidean, Space
-from snds.stability import CheckConfig, check_stability
+from snds.stability import CheckConfig, check_stability, decrease_violations
 
 from conftest import SMALL, spiral_demos
 
@@ -107,3 +110,45 @@ def test_one_check_and_one_accuracy_serve_every_space(task) -> None:
         assert f"{name}_error_along" in record and f"final_{name}_error" in record
     for name in space.velocity_names[1:]:
         assert f"{name}_mse" in record
+
+
+POLICIES = [
+    pytest.param(space, stable, id=f"{space}-{'snds' if stable else 'bc'}")
+    for space in ("positions-2d", "positions-3d", "poses")
+    for stable in (True, False)
+]
+
+
+def _demos(space: str):
+    demos = spiral_demos(count=2, samples=150, dim=3 if space == "positions-3d" else 2)
+    if space == "poses":
+        demos = with_synthetic_orientations(demos, target_orientation=(0.0, 0.6, 0.0, 0.8), seed=1)
+    return demos
+
+
+@pytest.mark.parametrize(("space", "stable"), POLICIES)
+def test_every_policy_saves_exports_and_keeps_its_guarantee(space, stable, tmp_path) -> None:
+    pytest.importorskip("onnxruntime", reason="the export leg needs the export extra")
+    pytest.importorskip("onnxscript", reason="the export leg needs the export extra")
+    from snds import export
+
+    # GIVEN an untrained SNDS or BC policy of each kind of state, in float64
+    demos = _demos(space)
+    config = dataclasses.replace(SMALL, stable=stable)
+    policy = float64_copy(make_policy(demos, config=config, seed=0))
+    x = torch.as_tensor(export.random_states(policy, 2000, seed=0))
+    # WHEN it is saved and loaded, and exported to ONNX
+    save_model(policy, tmp_path / "model")
+    loaded, _ = load_model(tmp_path / "model")
+    path = export.export_onnx(policy, tmp_path / "policy.onnx", dtype=torch.float64)
+    check = export.verify(path, policy, samples=2000)
+    # THEN the loaded model and the exported graph compute the policy (states near the target
+    # and up to 1,000 extents away), and a stable one's V decreases at every one of them
+    assert torch.equal(loaded.double()(x), policy(x))
+    assert check.passed and check.max_error <= 1e-9, check
+    velocities = policy(x)
+    assert velocities.shape == (2000, policy.space.tangent_dim)
+    assert torch.isfinite(velocities).all()
+    assert policy.stable is stable
+    if stable:
+        assert decrease_violations(policy, x) == 0
