@@ -32,7 +32,7 @@ import torch
 from _readme import write_readme_section
 
 from snds import export
-from snds.io import load_model
+from snds.models import load_model
 
 HERE = Path(__file__).resolve().parent
 BATCH = 10_000

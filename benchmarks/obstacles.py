@@ -40,7 +40,8 @@ import torch
 from _readme import write_readme_section
 
 from snds.data import load_demonstrations, load_lasa
-from snds.io import load_model, to_jsonable
+from snds.io import to_jsonable
+from snds.models import load_model
 from snds.obstacles import Box, Scene, Sphere, check_obstacles
 
 PAPER8 = ["Sine", "PShape", "Worm", "GShape", "NShape", "DoubleBendedLine", "CShape", "Angle"]

@@ -23,7 +23,7 @@ from safetensors.torch import save_file
 from snds.cli import main
 from snds.data import Demonstration, Demonstrations, Normalization, load_demonstrations, load_lasa
 from snds.errors import ConfigError, DataError, ModelFileError, SNDSError
-from snds.io import FORMAT_VERSION, load_model, save_model
+from snds.models import FORMAT_VERSION, load_model, save_model
 from snds.policy import PolicyConfig
 from snds.train import TrainConfig, fit
 

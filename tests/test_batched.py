@@ -167,9 +167,9 @@ def test_benchmark_fits_seeds_together_into_the_usual_run_folders(tmp_path, monk
     import importlib
 
     from snds import benchmark
-    from snds.io import load_model
+    from snds.models import load_model
 
-    # The module, not the function snds.evaluate that the package exports under its name.
+    # The module (import_module: no attribute lookup on the package).
     evaluate = importlib.import_module("snds.evaluate")
     check_stability = evaluate.check_stability
 

@@ -119,7 +119,7 @@ def test_sweep_keeps_each_run_model_loadable_with_its_numbers(cli_run):
     # GIVEN the model the sweep kept for Line/snds seed 0
     from snds.data import load_lasa, split_samples
     from snds.evaluate import accuracy
-    from snds.io import load_model
+    from snds.models import load_model
     from snds.policy import float64_copy
 
     task = Task("Line", "snds", 0, None)

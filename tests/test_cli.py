@@ -174,7 +174,7 @@ def test_train_with_a_warped_v_end_to_end(tmp_path):
     assert description["train"]["warp_weight"] == 0.01
     stability = json.loads((out / "metrics.json").read_text())["stability"]
     assert stability["decrease_violations"] == 0 and stability["converged_fraction"] == 1.0
-    from snds.io import load_model
+    from snds.models import load_model
 
     policy, _ = load_model(out)
     assert policy.lyapunov.warp is not None and len(policy.lyapunov.warp.layers) == 2

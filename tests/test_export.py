@@ -18,7 +18,7 @@ from snds import export
 from snds.cli import main
 from snds.data import Demonstration, Demonstrations
 from snds.data.poses import with_synthetic_orientations
-from snds.io import save_model
+from snds.models import save_model
 from snds.policy import PolicyConfig
 from snds.recipes import RECIPES
 from snds.se3 import make_pose_policy

@@ -23,7 +23,7 @@ from snds.data import (
     no_split,
 )
 from snds.errors import DataError, ModelFileError, SNDSError
-from snds.io import load_model, save_model
+from snds.models import load_model, save_model
 from snds.policy import StablePolicy
 from snds.train import TrainConfig, fit
 

@@ -11,8 +11,6 @@ import ast
 from dataclasses import dataclass
 from pathlib import Path
 
-import pytest
-
 SRC = Path(__file__).resolve().parents[1] / "src"
 PACKAGE = SRC / "snds"
 
@@ -26,17 +24,6 @@ DELIBERATE: dict[tuple[str, str], str] = {
     ("snds.app.worker", "snds.cli.train"): "the worker imports the library after the redirect",
     ("snds.app.worker", "snds.train"): "the worker imports the library after the redirect",
     ("snds.app.worker", "snds.errors"): "the worker imports the library after the redirect",
-}
-
-#: Function-level imports still waiting for a change: (importing module, imported module),
-#: each with the change that removes it. Kept explicit so that the list can only shrink (a
-#: test below fails on an entry whose import has gone).
-_SE3_CLI = "the lead's SE(3) unification removes the CLI's SE(3) helpers (issue 17)"
-PENDING: dict[tuple[str, str], str] = {
-    ("snds.train", "snds.io"): "train.py (training engineer): save_checkpoint can import "
-    "atomic_write at the top, snds.io is a leaf now",
-    ("snds.io", "snds.models"): "io.__getattr__ keeps snds.io.load_model/save_model for "
-    "callers not yet moved to snds.models (benchmarks/latency.py, tests)",
 }
 
 
@@ -119,7 +106,7 @@ def _optional(module: str) -> bool:
 
 def _allowed(imp: Import) -> bool:
     pair = (imp.source, imp.target)
-    return _optional(imp.target) or pair in DELIBERATE or pair in PENDING
+    return _optional(imp.target) or pair in DELIBERATE
 
 
 def _cycles(edges: dict[str, set[str]]) -> list[list[str]]:
@@ -185,9 +172,3 @@ def test_no_cycle_when_function_level_imports_count_too() -> None:
 def test_our_modules_are_imported_at_the_top_except_the_extras() -> None:
     lazy = sorted({str(imp) for imp in IMPORTS if not imp.top_level and not _allowed(imp)})
     assert not lazy, "function-level imports of snds modules:\n" + "\n".join(lazy)
-
-
-@pytest.mark.parametrize("pair", sorted(PENDING), ids=" -> ".join)
-def test_pending_exceptions_are_still_needed(pair: tuple[str, str]) -> None:
-    # An exception whose import has gone must leave the list.
-    assert any((i.source, i.target) == pair and not i.top_level for i in IMPORTS), pair

@@ -9,7 +9,7 @@ import torch
 from safetensors.torch import save_file
 
 from snds.errors import ModelFileError
-from snds.io import FORMAT_VERSION, load_model, save_model
+from snds.models import FORMAT_VERSION, load_model, save_model
 
 from conftest import make_policy
 

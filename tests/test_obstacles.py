@@ -316,7 +316,7 @@ BAD_SPECS = {
 @pytest.mark.parametrize("case", list(BAD_SPECS))
 def test_bad_obstacle_specs_exit_2_with_one_line(case, tmp_path, capsys):
     # GIVEN a saved 2-D model (a spiral, target at the origin) and a bad spec
-    from snds.io import save_model
+    from snds.models import save_model
 
     demos = spiral_demos()
     save_model(make_policy(demos), tmp_path / "m", extra={"data": {}})
@@ -352,7 +352,7 @@ def test_onnx_export_includes_a_fixed_obstacle_set(tmp_path, capsys):
     # GIVEN a saved small model and obstacles across its demonstrations
     pytest.importorskip("onnxruntime")
     from snds.export import load_onnx
-    from snds.io import save_model
+    from snds.models import save_model
 
     demos = spiral_demos()
     save_model(make_policy(demos), tmp_path / "m", extra={"data": {}})
@@ -363,7 +363,7 @@ def test_onnx_export_includes_a_fixed_obstacle_set(tmp_path, capsys):
     args += ["--samples", "500"]
     assert main([*args, *specs]) == 0
     # THEN the file computes the modulated field next to the obstacles too
-    from snds.io import load_model
+    from snds.models import load_model
     from snds.obstacles import ModulatedPolicy
 
     scene = Scene(obstacles=tuple(parse_obstacle(s) for s in specs[1::2]))
@@ -375,7 +375,7 @@ def test_onnx_export_includes_a_fixed_obstacle_set(tmp_path, capsys):
 
 
 def test_export_refuses_moving_obstacles_with_one_line(tmp_path, capsys):
-    from snds.io import save_model
+    from snds.models import save_model
 
     save_model(make_policy(spiral_demos()), tmp_path / "m", extra={"data": {}})
     before = sorted(p.name for p in (tmp_path / "m").iterdir())

@@ -26,8 +26,8 @@ from snds import evaluate as evaluate_module
 from snds.cli import main
 from snds.data import no_split, split_samples
 from snds.errors import CheckpointError
-from snds.io import load_model
 from snds.methods import POLICY_KINDS
+from snds.models import load_model
 from snds.policy import PolicyConfig, StablePolicy, float64_copy
 from snds.train import CHECKPOINT, TrainConfig, fit
 

@@ -11,7 +11,7 @@ from scipy.spatial.transform import Rotation
 from snds.data import no_split
 from snds.data.poses import angular_velocities, with_synthetic_orientations
 from snds.evaluate import accuracy
-from snds.io import load_model, save_model
+from snds.models import load_model, save_model
 from snds.rollout import policy_guard, rollout, safe_velocity
 from snds.se3 import PosePolicy, make_pose_policy
 from snds.so3 import left_jacobian, left_jacobian_inverse, relative_rotvec, rotate

@@ -13,7 +13,6 @@ from snds.batched import fit_many
 from snds.data import load_demonstrations, load_lasa, no_split, split_samples
 from snds.data.poses import load_poses
 from snds.errors import DataError, ModelFileError, SNDSError
-from snds.evaluate import evaluate
 from snds.method import make_policy
 from snds.models import load_model, save_model
 from snds.policy import PolicyConfig, StablePolicy, project
@@ -39,7 +38,6 @@ __all__ = [
     "TrainingError",
     "__version__",
     "check_stability",
-    "evaluate",
     "fit",
     "fit_many",
     "load_demonstrations",

@@ -72,18 +72,3 @@ def to_jsonable(value: Any) -> Any:
     if isinstance(value, np.generic):
         return value.item()
     return value
-
-
-#: Names that moved to :mod:`snds.models`, still readable here for callers not yet updated.
-_MOVED = frozenset(
-    {"DESCRIPTION", "FORMAT_VERSION", "WEIGHTS", "load_model", "read_description", "save_model"}
-)
-
-
-def __getattr__(name: str) -> Any:
-    if name in _MOVED:
-        # Imported on use: snds.models depends on this module, not the other way round.
-        import snds.models
-
-        return getattr(snds.models, name)
-    raise AttributeError(f"module 'snds.io' has no attribute {name!r}")

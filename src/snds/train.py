@@ -18,6 +18,7 @@ from tqdm.auto import tqdm
 
 from snds.data.demonstrations import Demonstrations, Split
 from snds.errors import CheckpointError, ConfigError, SNDSError
+from snds.io import atomic_write
 from snds.losses import VELOCITY_SHAPES, Samples, make_samples, velocity_loss, window_loss
 from snds.nn.flow import EuclideanizingFlow
 from snds.policy import Policy, StablePolicy
@@ -442,7 +443,6 @@ def save_checkpoint(
     generator: torch.Generator,
 ) -> None:
     """Writes the state of a fit atomically (see :func:`fit`); safetensors and JSON only."""
-    from snds.io import atomic_write
 
     tensors = {f"policy.{k}": v for k, v in policy.state_dict().items()}
     tensors |= {f"good.{k}": v for k, v in state.good.items()}

@@ -21,7 +21,7 @@ from starlette.testclient import TestClient  # noqa: E402
 from snds.app import LIMITS, create_app  # noqa: E402
 from snds.app.strokes import parse_strokes  # noqa: E402
 from snds.cli import main  # noqa: E402
-from snds.io import load_model  # noqa: E402
+from snds.models import load_model  # noqa: E402
 from snds.policy import float64_copy  # noqa: E402
 from snds.rollout import policy_guard  # noqa: E402
 

@@ -21,8 +21,8 @@ pytest.importorskip("cvxpy", reason="LPV-DS needs the baselines extra (cvxpy)")
 from snds.baselines import lpvds  # noqa: E402
 from snds.baselines.lpvds import LPVDS, LPVDSPolicy  # noqa: E402
 from snds.baselines.mixture import MixtureConfig  # noqa: E402
-from snds.io import load_model, save_model  # noqa: E402
 from snds.methods import METHODS, POLICY_KINDS  # noqa: E402
+from snds.models import load_model, save_model  # noqa: E402
 
 
 @pytest.fixture(autouse=True, scope="module")

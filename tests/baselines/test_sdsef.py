@@ -11,9 +11,9 @@ from snds.baselines.sdsef import SDSEF, SDSEFConfig, SDSEFPolicy
 from snds.data import Demonstration, Demonstrations, Normalization
 from snds.data.demonstrations import Split, split_samples
 from snds.errors import DataError
-from snds.io import load_model, save_model
 from snds.losses import make_samples
 from snds.methods import METHODS, POLICY_KINDS
+from snds.models import load_model, save_model
 from snds.stability import CheckConfig, check_stability
 from snds.train import TrainConfig
 

@@ -24,8 +24,8 @@ from snds.baselines.seds import (  # noqa: E402
     _project_stable,
     _SEDSParameters,
 )
-from snds.io import load_model, save_model  # noqa: E402
 from snds.methods import METHODS, POLICY_KINDS  # noqa: E402
+from snds.models import load_model, save_model  # noqa: E402
 
 
 @pytest.fixture(autouse=True, scope="module")

@@ -13,7 +13,7 @@ import torch
 from test_plotting import assert_png
 
 from snds.cli import main
-from snds.io import save_model
+from snds.models import save_model
 from snds.policy import PolicyConfig
 from snds.sim import Push, SimConfig, simulate
 from snds.sim.robots import get_robot

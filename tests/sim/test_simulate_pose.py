@@ -15,7 +15,7 @@ from test_plotting import assert_png
 from snds.cli import main
 from snds.data import no_split
 from snds.data.poses import PoseDemonstration, with_synthetic_orientations
-from snds.io import save_model
+from snds.models import save_model
 from snds.policy import PolicyConfig
 from snds.se3 import make_pose_policy
 from snds.sim import Push, SimConfig, SimulationError, simulate
