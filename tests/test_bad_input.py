@@ -22,6 +22,7 @@ from safetensors.torch import save_file
 
 from snds.cli import main
 from snds.data import Demonstration, Demonstrations, Normalization, load_demonstrations, load_lasa
+from snds.data.poses import load_poses
 from snds.errors import ConfigError, DataError, ModelFileError, SNDSError
 from snds.models import FORMAT_VERSION, load_model, save_model
 from snds.policy import PolicyConfig
@@ -57,6 +58,33 @@ def data_file(name: str, write: Callable[[Path], None]):
         return ["train", "--data", str(path)], lambda: load_demonstrations(path)
 
     return make
+
+
+def pose_file(name: str, rows: list[list[float]]):
+    """A case whose input is a pose CSV file given to ``snds train --data``."""
+
+    def make(folder: Path):
+        path = folder / name
+        header = "demo,t,x,y,z,qx,qy,qz,qw\n"
+        path.write_text(header + "".join(",".join(map(str, row)) + "\n" for row in rows))
+        return ["train", "--data", str(path)], lambda: load_poses(path)
+
+    return make
+
+
+#: Two pose demonstrations from (1, 1, 0) and (1, 0, 0) to the origin, at the identity.
+GOOD_POSES = [
+    [0, 0, 1, 1, 0, 0, 0, 0, 1],
+    [0, 1, 0, 0, 0, 0, 0, 0, 1],
+    [1, 0, 1, 0, 0, 0, 0, 0, 1],
+    [1, 1, 0, 0, 0, 0, 0, 0, 1],
+]
+
+
+def _poses_with(index: int, quaternion: list[float]) -> list[list[float]]:
+    rows = [list(row) for row in GOOD_POSES]
+    rows[index][5:] = quaternion
+    return rows
 
 
 def text(content: str) -> Callable[[Path], None]:
@@ -222,6 +250,21 @@ CASES: dict[str, Case] = {
     ),
     "demos that never move": Case(
         never_move, DataError, "still.csv: demonstrations have zero extent"
+    ),
+    "pose not a unit quaternion": Case(
+        pose_file("norm.csv", _poses_with(0, [0, 0, 0, 2])),
+        DataError,
+        r"norm.csv: demo '0': orientations are not unit quaternions \(norms 1..2\)",
+    ),
+    "pose zero quaternion": Case(
+        pose_file("zero_q.csv", _poses_with(0, [0, 0, 0, 0])),
+        DataError,
+        r"zero_q.csv: demo '0': orientations has a zero quaternion \(row 0\)",
+    ),
+    "pose ends turned apart": Case(
+        pose_file("turned.csv", _poses_with(3, [0, 0, 0.7071, 0.7071])),
+        DataError,
+        "turned.csv: demonstrations do not end at a common orientation",
     ),
     "unknown motion": Case(unknown_motion, DataError, "unknown LASA motion 'Sinus'"),
     "bad setting": Case(

@@ -113,8 +113,14 @@ TRAIN = ["train", "--motion", "Line", "--demos", "2", "--steps", "80"]
 TRAIN += ["--checkpoint-every", "10", "--rollouts", "5", "--samples", "100"]
 
 
-def test_killed_train_resumes_to_the_uninterrupted_model(tmp_path, short_check):
+#: The same run for positions, and lifted to SE(3) poses with grid starts in its check.
+TRAIN_RUNS = {"positions": TRAIN, "poses": [*TRAIN, "--se3", "--grid"]}
+
+
+@pytest.mark.parametrize("kind", list(TRAIN_RUNS))
+def test_killed_train_resumes_to_the_uninterrupted_model(kind, tmp_path, short_check):
     # GIVEN the model of an uninterrupted run
+    TRAIN = TRAIN_RUNS[kind]
     reference = tmp_path / "reference"
     assert main(["--quiet", *TRAIN, "--out", str(reference)]) == 0
     # WHEN the same run is killed with SIGKILL right after its first checkpoint
@@ -131,6 +137,16 @@ def test_killed_train_resumes_to_the_uninterrupted_model(tmp_path, short_check):
     losses = [json.loads((d / "loss.json").read_text()) for d in (run, reference)]
     assert losses[0] == losses[1]
     assert json.loads((run / "model.json").read_text())["train_result"]["steps"] == 80
+    assert json.loads((run / "model.json").read_text())["kind"] == (
+        "se3" if kind == "poses" else "stable"
+    )
+    metrics = json.loads((run / "metrics.json").read_text())
+    # --grid: 5 rollouts asked for, 2 grid points per axis of a 2-D (positions) or a 3-D
+    # (poses: orientations drawn at each point) box
+    assert metrics["stability"]["rollouts"] == (8 if kind == "poses" else 5)
+    assert metrics == json.loads((reference / "metrics.json").read_text()) | {
+        "train_seconds": metrics["train_seconds"]
+    }
 
 
 BENCH = ["benchmark", "--motions", "Line", "--methods", "snds", "--seeds", "2", "--demos", "2"]
