@@ -1,6 +1,7 @@
 import dataclasses
 
 import numpy as np
+import pytest
 import torch
 
 from snds.data import Demonstration, Demonstrations
@@ -63,6 +64,36 @@ def test_largest_safe_step_is_exact_for_a_quadratic():
     torch.testing.assert_close(policy(x), -0.5 * x)
     h = largest_safe_step(policy, x, upper=100.0)
     assert abs(h - 4.0) < 1e-6
+
+
+@pytest.mark.parametrize("warp_layers", [0, 3])
+def test_largest_safe_step_is_safe_at_every_state_and_tight(spiral, warp_layers):
+    # GIVEN a policy whose V is convex (0 layers) or warped away from the identity (3), and
+    # 2,000 states up to 10 extents out
+    from snds.stability import largest_safe_step
+
+    config = dataclasses.replace(SMALL, warp_layers=warp_layers)
+    policy = make_policy(spiral, config, seed=4)
+    with torch.no_grad():
+        for p in policy.lyapunov.parameters() if warp_layers else ():
+            p.add_(0.3 * torch.randn_like(p))
+    x = policy.center + policy.length * 10 * (torch.rand(2000, 2, dtype=torch.float64) - 0.5)
+    # WHEN the largest step safe at all of them is searched
+    h = largest_safe_step(policy, x, upper=10.0)
+    # THEN every state's V does not rise at that step (up to V's rounding allowance), and a
+    # step 1e-5 longer raises V at some state: the bound is the smallest state's, found to
+    # the bisection's precision
+    with torch.no_grad():
+        xm = policy.to_model(x)
+        value, velocity = policy.lyapunov(xm), policy.field(xm)
+
+        def rises(step: float) -> torch.Tensor:
+            moved = policy.lyapunov(xm + step / policy.time * velocity)
+            return moved > value + 1e-7 * value + 1e-12
+
+    assert 0 < h < 10.0
+    assert not rises(h).any()
+    assert rises(h * (1 + 1e-5)).any()
 
 
 def test_report_includes_a_safe_step_above_the_rollout_step(spiral):
