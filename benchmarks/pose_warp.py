@@ -161,7 +161,9 @@ def main() -> None:
     atomic_write(RESULTS, lambda tmp: tmp.write_text(json.dumps(record, indent=1)))
     header = (
         f"Measured {record['date']} at {commit} (`python benchmarks/pose_warp.py --seeds "
-        f"{' '.join(map(str, args.seeds))}`), {args.jobs} runs side by side on 2 shared cores, "
+        f"{' '.join(map(str, args.seeds))}`), "
+        f"{'one run at a time' if args.jobs == 1 else f'{args.jobs} runs side by side'} on 2 "
+        "shared cores, "
         "one torch thread each: read CPU seconds. Means over the seeds; converged and the "
         "largest safe step are the worst seed's; the default check (500 random poses, "
         "50,000 decrease samples)."
