@@ -271,10 +271,12 @@ def test_summary_means_by_hand_and_rows_without_a_field():
 
 @pytest.fixture(scope="module")
 def pose_sweep(tmp_path_factory):
-    """`snds benchmark --se3` end to end: Line lifted to SE(3), snds, one seed."""
+    """`snds benchmark --se3` end to end: two demonstrations of Line lifted to SE(3), snds,
+    one seed."""
     out = tmp_path_factory.mktemp("pose")
     args = ["--motions", "Line", "--se3", "--methods", "snds", "--seeds", "1", "--steps", "30"]
-    assert main(["--quiet", "benchmark", *args, "--quick", "--jobs", "1", "--out", str(out)]) == 0
+    args += ["--demos", "2", "--rollouts", "20", "--samples", "2000", "--jobs", "1"]
+    assert main(["--quiet", "benchmark", *args, "--out", str(out)]) == 0
     return out
 
 
@@ -287,14 +289,14 @@ def test_pose_task_sweeps_end_to_end_and_resumes(pose_sweep, monkeypatch):
 
     # GIVEN the row and the model of the pose sweep
     row = json.loads((pose_sweep / "results.jsonl").read_text().splitlines()[0])
-    assert (row["motion"], row["se3"], row["samples_checked"]) == ("Line", True, 5000)
+    assert (row["motion"], row["se3"], row["samples_checked"]) == ("Line", True, 2000)
     assert row["decrease_violations"] == 0
     assert 0.0 <= row["final_angle_error"] <= math.pi and math.isfinite(row["angle_error_along"])
-    task = Task("Line", "snds", 0, None, se3=True)
-    assert task.key == "Line/snds/seed=0/demos=all/se3" and Task.from_row(row) == task
+    task = Task("Line", "snds", 0, 2, se3=True)
+    assert task.key == "Line/snds/seed=0/demos=2/se3" and Task.from_row(row) == task
     policy, description = load_model(pose_sweep / task.model_dir)
     assert isinstance(policy.space, SE3) and description["kind"] == "se3"
-    assert description["data"] == {"motion": "Line", "demos": None, "orientation_seed": 0}
+    assert description["data"] == {"motion": "Line", "demos": 2, "orientation_seed": 0}
     # The pose recipe's training settings, as `snds train --se3` uses them.
     assert description["train"]["shape_weight"] == 0.01
     assert description["train"]["position_noise"] == 0.0
@@ -308,7 +310,8 @@ def test_pose_task_sweeps_end_to_end_and_resumes(pose_sweep, monkeypatch):
     # AND a rerun trains nothing
     monkeypatch.setattr(benchmark, "run_task", lambda *a: pytest.fail("retrained"))
     monkeypatch.setattr(benchmark, "run_batch", lambda *a: pytest.fail("retrained"))
-    assert run_sweep([task], out=pose_sweep, jobs=1, **TINY) == [row]
+    settings = benchmark.SweepSettings(steps=30, rollouts=20, samples=2000)
+    assert run_sweep([task], out=pose_sweep, jobs=1, settings=settings, progress=False) == [row]
 
 
 def test_pose_tasks_refuse_position_only_methods(tmp_path, capsys):
