@@ -6,6 +6,8 @@ BIN := $(VENV)/bin
 # torch is pinned to the CPU build for this project's own install path (constraints.txt);
 # the package metadata keeps an open range so it installs anywhere.
 PIP_INSTALL := $(BIN)/python -m pip install --quiet -c constraints.txt
+# Test processes (pytest-xdist), each running whole test files; 0 runs the suite in this process.
+TEST_JOBS ?= 2
 
 .PHONY: install demo test lint format benchmark docs clean
 
@@ -22,7 +24,7 @@ demo: install
 	$(BIN)/snds train --motion Sine --out runs/Sine --plot
 
 test: install
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n $(TEST_JOBS) --dist loadfile
 
 lint: install
 	$(BIN)/ruff check src tests benchmarks examples
