@@ -148,6 +148,11 @@ def _names(spec: str) -> list[str]:
     return [part.strip() for part in spec.split(",") if part.strip()]
 
 
+def _is_file(motion: str) -> bool:
+    """Whether a task's motion is a demonstrations file (by its suffix), not a LASA name."""
+    return Path(motion).suffix.lower() in LOADERS
+
+
 def resolve_motions(spec: str) -> list[str]:
     """Motion names from comma-separated LASA names, :data:`MOTION_GROUPS` keys and paths of
     demonstrations files (``.mat``, ``.csv``, ``.npz``; a pose file makes an SE(3) task).
@@ -164,7 +169,7 @@ def resolve_motions(spec: str) -> list[str]:
             found = MOTION_GROUPS[part.lower()]
         elif part.lower() in by_lower:
             found = (by_lower[part.lower()],)
-        elif Path(part).suffix.lower() in LOADERS:
+        elif _is_file(part):
             if not Path(part).is_file():
                 raise DataError(f"{part}: no such demonstrations file")
             found = (part,)
@@ -229,7 +234,8 @@ class Task:
     @property
     def label(self) -> str:
         """The task's data in tables and figures: the motion or file name, "-se3" for poses."""
-        return self.source().name + ("-se3" if self.se3 else "")
+        name = Path(self.motion).stem if _is_file(self.motion) else self.motion
+        return name + ("-se3" if self.se3 else "")
 
     @property
     def space(self) -> type[Space]:
@@ -244,10 +250,10 @@ class Task:
 
     def source(self) -> DataSource:
         """Where the task's demonstrations come from."""
-        lasa = Path(self.motion).suffix.lower() not in LOADERS
+        file = _is_file(self.motion)
         return DataSource(
-            motion=self.motion if lasa else None,
-            file=None if lasa else Path(self.motion),
+            motion=None if file else self.motion,
+            file=Path(self.motion) if file else None,
             demos=self.demos,
             poses=self.se3,
             orientation_seed=self.seed,
@@ -734,7 +740,9 @@ def plot_benchmark(rows: Sequence[dict], out: Path) -> list[Path]:
     from matplotlib.figure import Figure
 
     out = Path(out)
-    motions = list(dict.fromkeys(_label(r) for r in rows))
+    # The rows of each (motion, method) cell, each row's label read once.
+    cells = {(motion, method): group for motion, method, group in _groups(rows)}
+    motions = list(dict.fromkeys(motion for motion, _ in cells))
     methods = list(dict.fromkeys(r["method"] for r in rows))
     width = 0.8 / max(1, len(methods))
     size = (max(5.0, 1.2 * len(motions) * max(1, len(methods)) ** 0.5 + 2), 4.0)
@@ -743,9 +751,7 @@ def plot_benchmark(rows: Sequence[dict], out: Path) -> list[Path]:
         return np.arange(len(motions)) + (i - (len(methods) - 1) / 2) * width
 
     def values(motion: str, method: str, key: str) -> np.ndarray:
-        return np.array(
-            [r[key] for r in rows if _label(r) == motion and r["method"] == method], dtype=float
-        )
+        return np.array([r[key] for r in cells.get((motion, method), [])], dtype=float)
 
     def violins(key: str, label: str, name: str) -> Path:
         fig = Figure(figsize=size, layout="constrained")
@@ -802,19 +808,22 @@ def plot_benchmark(rows: Sequence[dict], out: Path) -> list[Path]:
     ax.legend(loc="lower right", fontsize="small")
     paths.append(_save(fig, out / "converged.png"))
 
-    panels = _panels(rows, out, motions, methods)
+    panels = _panels(cells, out, motions, methods)
     if any(panel is not None for row in panels for panel in row):
         paths.append(plot_panels(panels, out / "streamlines.png"))
     return paths
 
 
-def _panels(rows: Sequence[dict], out: Path, motions: list[str], methods: list[str]) -> list:
-    """The streamline panels: the lowest seed's saved model per method (row) and motion."""
+def _panels(
+    cells: dict[tuple[str, str], list[dict]], out: Path, motions: list[str], methods: list[str]
+) -> list:
+    """The streamline panels: the lowest seed's saved model per method (row) and motion
+    (``cells``: the rows of each (motion label, method))."""
     grid = []
     for method in methods:
         line = []
         for motion in motions:
-            runs = [r for r in rows if _label(r) == motion and r["method"] == method]
+            runs = cells.get((motion, method), [])
             task = Task.from_row(min(runs, key=lambda r: r["seed"])) if runs else None
             folder = out / task.model_dir if task else None
             if folder is None or not folder.is_dir():
