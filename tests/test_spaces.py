@@ -85,11 +85,17 @@ def test_scales_have_one_entry_per_component(space: Space) -> None:
     assert len(space.velocity_names) == len(space.velocity_sizes)
 
 
-@pytest.fixture(scope="module", params=["positions", "poses"])
-def task(request):
-    demos = spiral_demos(count=2, samples=150)
-    if request.param == "poses":
+def _demos(space: str):
+    """Two spiral demonstrations: 2-D or 3-D positions, or lifted to poses."""
+    demos = spiral_demos(count=2, samples=150, dim=3 if space == "positions-3d" else 2)
+    if space == "poses":
         demos = with_synthetic_orientations(demos, target_orientation=(0.0, 0.6, 0.0, 0.8), seed=1)
+    return demos
+
+
+@pytest.fixture(scope="module", params=["positions-2d", "poses"])
+def task(request):
+    demos = _demos(request.param)
     return demos, float64_copy(make_policy(demos, config=SMALL, seed=0))
 
 
@@ -117,13 +123,6 @@ POLICIES = [
     for space in ("positions-2d", "positions-3d", "poses")
     for stable in (True, False)
 ]
-
-
-def _demos(space: str):
-    demos = spiral_demos(count=2, samples=150, dim=3 if space == "positions-3d" else 2)
-    if space == "poses":
-        demos = with_synthetic_orientations(demos, target_orientation=(0.0, 0.6, 0.0, 0.8), seed=1)
-    return demos
 
 
 @pytest.mark.parametrize(("space", "stable"), POLICIES)
