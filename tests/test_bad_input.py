@@ -49,27 +49,24 @@ class Case:
     message: str
 
 
-def data_file(name: str, write: Callable[[Path], None]):
-    """A case whose input is a demonstrations file given to ``snds train --data``."""
+def data_file(
+    name: str, write: Callable[[Path], None], load: Callable[[Path], object] = load_demonstrations
+):
+    """A case whose input is a demonstrations file given to ``snds train --data``; ``load``
+    is the API's loader of it."""
 
     def make(folder: Path):
         path = folder / name
         write(path)
-        return ["train", "--data", str(path)], lambda: load_demonstrations(path)
+        return ["train", "--data", str(path)], lambda: load(path)
 
     return make
 
 
 def pose_file(name: str, rows: list[list[float]]):
-    """A case whose input is a pose CSV file given to ``snds train --data``."""
-
-    def make(folder: Path):
-        path = folder / name
-        header = "demo,t,x,y,z,qx,qy,qz,qw\n"
-        path.write_text(header + "".join(",".join(map(str, row)) + "\n" for row in rows))
-        return ["train", "--data", str(path)], lambda: load_poses(path)
-
-    return make
+    """A case whose input is a pose CSV file of these rows given to ``snds train --data``."""
+    lines = "".join(",".join(map(str, row)) + "\n" for row in rows)
+    return data_file(name, text("demo,t,x,y,z,qx,qy,qz,qw\n" + lines), load=load_poses)
 
 
 #: Two pose demonstrations from (1, 1, 0) and (1, 0, 0) to the origin, at the identity.
