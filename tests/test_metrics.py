@@ -11,6 +11,7 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from snds import metrics
+from snds.data import Demonstration, Demonstrations
 from snds.errors import DataError
 from snds.metrics import (
     dtw,
@@ -383,3 +384,123 @@ def test_bad_shapes_and_scales_raise_data_error(call, args):
 def test_swept_area_names_the_planar_requirement():
     with pytest.raises(DataError, match=r"planar paths of shape \(T, 2\)"):
         swept_error_area(np.zeros((3, 3)), np.zeros((3, 3)))
+
+
+# --- field_roughness -------------------------------------------------------------------------
+
+# The rotation field pi(x) = A x, A = [[0, -1], [1, 0]], turns each position by 90 degrees, so
+# the angle between the velocities at two points is the angle between the points as seen from
+# the origin. On the 3 x 3 grid x1 in {1, 2, 3}, x2 in {0, 1, 2} the points' polar angles are
+# atan2(x2, x1):
+#            x1=1     x1=2     x1=3
+#   x2=0     0        0        0
+#   x2=1     45       26.565   18.435
+#   x2=2     63.435   45       33.690
+# Horizontal neighbours: 0, 0 | 18.435, 8.130 | 18.435, 11.310; vertical ones: 45, 18.435 |
+# 26.565, 18.435 | 18.435, 15.255. Sorted, the 12 angles are 0, 0, 8.130, 11.310, 15.255,
+# 18.435 (five times), 26.565, 45: median 18.435 (= atan(1/3)), mean 198.435 / 12, and the
+# 90th percentile at index 0.9 * 11 = 9.9, between 18.435 and 26.565: 18.435 + 0.9 * 8.130.
+ROTATION = np.array([[0.0, -1.0], [1.0, 0.0]])
+ROTATION_BOX = (np.array([1.0, 0.0]), np.array([3.0, 2.0]))
+ATAN_THIRD, ATAN_HALF = math.degrees(math.atan(1 / 3)), math.degrees(math.atan(1 / 2))
+
+
+def test_a_uniform_field_has_zero_roughness() -> None:
+    result = metrics.field_roughness(
+        lambda x: np.tile([2.0, -1.0], (len(x), 1)),
+        box=(np.zeros(2), np.ones(2)),
+        center=np.zeros(2),
+        n=7,
+    )
+    assert result.median == result.p90 == result.max == 0.0
+    assert (result.pairs, result.skipped) == (2 * 7 * 6, 0)
+
+
+def test_a_rotation_field_gives_the_hand_computed_angles() -> None:
+    result = metrics.field_roughness(
+        lambda x: x @ ROTATION.T, box=ROTATION_BOX, center=np.zeros(2), n=3
+    )
+    assert result.median == pytest.approx(ATAN_THIRD, rel=1e-12)
+    assert result.p90 == pytest.approx(ATAN_THIRD + 0.9 * (ATAN_HALF - ATAN_THIRD), rel=1e-12)
+    assert result.mean == pytest.approx(198.435 / 12, rel=1e-5)
+    assert result.max == pytest.approx(45.0, rel=1e-12)
+    assert (result.pairs, result.skipped, result.spacing) == (12, 0, (1.0, 1.0))
+
+
+def test_a_kink_shows_in_the_tail_not_the_median() -> None:
+    # GIVEN a field that turns by 45 degrees across x2 = 0.5: on the 4 x 4 grid over [0, 1]^2
+    # (x2 in 0, 1/3, 2/3, 1) only the 4 vertical pairs across the line differ, of 24 pairs.
+    def kinked(x: np.ndarray) -> np.ndarray:
+        return np.where((x[:, 1] > 0.5)[:, None], [1.0, 1.0], [3.0, 0.0])
+
+    result = metrics.field_roughness(kinked, box=(np.zeros(2), np.ones(2)), center=np.zeros(2), n=4)
+    # THEN 20 angles are 0 and 4 are 45: median 0, 90th percentile at index 20.7 (a 45), mean 7.5.
+    assert (result.median, result.pairs) == (0.0, 24)
+    assert result.p90 == pytest.approx(45.0)
+    assert result.mean == pytest.approx(7.5)
+
+
+def test_pairs_without_a_direction_are_skipped() -> None:
+    # GIVEN the rotation field at the origin's grid: the centre of the 3 x 3 grid over
+    # [-1, 1]^2 is the origin, where the velocity is 0, and one more point returns NaN.
+    def field(x: np.ndarray) -> np.ndarray:
+        v = x @ ROTATION.T
+        v[np.all(x == [1.0, 1.0], axis=1)] = np.nan
+        return v
+
+    result = metrics.field_roughness(field, box=(-np.ones(2), np.ones(2)), center=np.zeros(2), n=3)
+    # THEN the 4 pairs with the origin and the 2 with (1, 1) are skipped; the other 6 pairs
+    # are neighbours one step apart on the square's rim, each 45 degrees apart as seen from it.
+    assert (result.pairs, result.skipped) == (6, 6)
+    assert result.median == result.max == pytest.approx(45.0)
+
+
+def test_a_field_without_any_direction_gives_nan() -> None:
+    result = metrics.field_roughness(
+        np.zeros_like, box=(np.zeros(2), np.ones(2)), center=np.zeros(2), n=3
+    )
+    assert math.isnan(result.median) and (result.pairs, result.skipped) == (0, 12)
+
+
+def test_roughness_defaults_to_the_stability_checks_box_and_the_slice_through_the_target() -> None:
+    # GIVEN 3-D demonstrations with target (1, 2, 5) and extent 2, and a field that is uniform
+    # only in the slice x3 = 5 and records the states it was asked about
+    path = np.array([[3.0, 2.0, 5.0], [1.0, 2.0, 5.0]])
+    demo = Demonstration(positions=path, velocities=np.zeros_like(path), times=np.arange(2.0))
+    demos = Demonstrations((demo,), path[-1])
+    asked = []
+
+    def field(x: np.ndarray) -> np.ndarray:
+        asked.append(x)
+        return np.where(np.isclose(x[:, 2:], 5.0), 1.0, x[:, :1] * x[:, 1:2]) * [1.0, 0.0, 0.0]
+
+    result = metrics.field_roughness(field, demos, n=5)
+    # THEN it scores 0 on the grid over target +- 3 extents with x3 held at the target's 5
+    (x,) = asked
+    assert result.max == 0.0 and result.pairs == 40
+    assert x[:, 0].min() == -5.0 and x[:, 0].max() == 7.0
+    assert x[:, 1].min() == -4.0 and x[:, 1].max() == 8.0
+    assert (x[:, 2] == 5.0).all()
+    assert result.spacing == (3.0, 3.0)
+
+
+def test_roughness_of_a_policy_uses_its_predict(policy64, spiral: Demonstrations) -> None:
+    # A policy is scored through predict (user states in, user velocities out).
+    result = metrics.field_roughness(policy64, spiral, n=9)
+    expected = metrics.field_roughness(policy64.predict, spiral, n=9)
+    assert result == expected and 0 < result.median < 180
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"n": 1}, "n >= 2"),
+        ({"box": (np.ones(2), np.ones(2))}, "high > low"),
+        ({"center": None}, "needs demos"),
+        ({"center": np.zeros(1)}, ">= 2 coordinates"),
+    ],
+)
+def test_roughness_refuses_bad_grids(kwargs: dict, match: str) -> None:
+    settings = {"box": (np.zeros(2), np.ones(2)), "center": np.zeros(2)} | kwargs
+    with pytest.raises(DataError, match=match):
+        metrics.field_roughness(lambda x: x, **settings)

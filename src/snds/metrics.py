@@ -17,19 +17,30 @@ Two shape metrics from the wider literature complete them: :func:`frechet`, the 
 Fréchet distance (the worst gap under the best monotone pairing, where DTW sums the gaps), and
 :func:`swept_error_area`, the area between a planar reproduction and its demonstration
 (Khansari-Zadeh's SEA).
+
+:func:`field_roughness` scores the field itself away from the data: how much the direction of
+the velocity turns between neighbouring points of a grid over the stability check's box.
 """
 
 from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from typing import Protocol
 
 import numpy as np
 from dtaidistance import dtw as _dtw
 from dtaidistance import dtw_ndim as _dtw_ndim
 
+from snds.data.demonstrations import DemonstrationSet
 from snds.errors import DataError
+from snds.stability import CheckConfig
 
 __all__ = [
+    "Roughness",
     "dtw",
     "dtw_sum",
+    "field_roughness",
     "final_distance",
     "frechet",
     "swept_error_area",
@@ -286,3 +297,164 @@ def swept_error_area(reproduction: np.ndarray, demonstration: np.ndarray) -> flo
     simple = 0.5 * np.abs(_cross(p2 - p0, p3 - p1))
     areas = np.where(crossed_paths, lobes_paths, np.where(crossed_rungs, lobes_rungs, simple))
     return float(np.sum(areas))
+
+
+class Predicts(Protocol):
+    """Anything with a NumPy ``predict``, as every :class:`~snds.policy.Policy` has."""
+
+    def predict(self, x: np.ndarray) -> np.ndarray:
+        """Velocities (N, k) at states (N, m)."""
+
+
+#: A velocity field on NumPy states: a policy, or a function from states (N, m) to (N, k).
+VelocityField = Predicts | Callable[[np.ndarray], np.ndarray]
+
+#: Points per side of :func:`field_roughness`'s grid by default: over the stability check's
+#: box (6 extents wide) a spacing of 0.06 extents, finer than any demonstrated bend.
+ROUGHNESS_GRID = 101
+#: Speeds at most this fraction of the fastest on the grid count as zero (no direction).
+ROUGHNESS_ZERO_SPEED = 1e-9
+
+
+@dataclass(frozen=True)
+class Roughness:
+    """How much a field's direction turns between neighbouring grid points
+    (:func:`field_roughness`).
+
+    Attributes:
+        median: Median angle between the velocities of neighbouring points, degrees.
+        p90: Its 90th percentile, degrees (linear interpolation, NumPy's default).
+        mean: Mean angle, degrees.
+        max: Largest angle, degrees (180 where the field reverses between neighbours).
+        pairs: Neighbour pairs measured.
+        skipped: Neighbour pairs left out because a velocity had no direction (zero up to
+            :data:`ROUGHNESS_ZERO_SPEED` of the fastest on the grid, or not finite).
+        spacing: The grid's spacing along each of its two axes, user units, shape (2,).
+    """
+
+    median: float
+    p90: float
+    mean: float
+    max: float
+    pairs: int
+    skipped: int
+    spacing: tuple[float, float]
+
+    def to_dict(self) -> dict:
+        """JSON-ready form."""
+        return asdict(self)
+
+
+def _angles(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Angles in [0, pi] between unit vectors u and v (*, k): Kahan's 2 atan2(|u - v|, |u + v|),
+    accurate at every angle and in every dimension (arccos of the dot product loses half the
+    digits near 0 and pi)."""
+    return 2.0 * np.arctan2(np.linalg.norm(u - v, axis=-1), np.linalg.norm(u + v, axis=-1))
+
+
+def field_roughness(
+    field: VelocityField,
+    demos: DemonstrationSet | None = None,
+    *,
+    box: tuple[np.ndarray, np.ndarray] | None = None,
+    center: np.ndarray | None = None,
+    n: int = ROUGHNESS_GRID,
+    box_factor: float = CheckConfig().box_factor,
+) -> Roughness:
+    r"""How wiggly a velocity field is: the angles between the velocities of neighbouring points
+    of a regular grid, far from the data included.
+
+    The grid has :math:`n \times n` points :math:`x_{ij}` over a box of the plane of the
+    first two coordinates, the others held at ``center`` (the target: the slice that
+    :mod:`snds.plotting` draws). For every pair of horizontal or vertical neighbours,
+
+    .. math:: \theta = \angle\big(\pi(x_{ij}), \pi(x_{i,j+1})\big), \quad
+              \angle(u, v) = 2 \operatorname{atan2}\big(\|\hat u - \hat v\|,
+              \|\hat u + \hat v\|\big) \in [0°, 180°]
+
+    with :math:`\hat u = u / \|u\|`, taken between the whole velocity rows (in
+    :math:`\mathbb{R}^n` for an n-D field, so a field that turns out of the plane counts
+    too). There are :math:`2 n (n - 1)` pairs. A pair is skipped where a velocity has no
+    direction: speed at most :data:`ROUGHNESS_ZERO_SPEED` times the fastest on the grid (the
+    target of a stable field), or not finite. A uniform field scores 0 everywhere; a smooth
+    field scores about the grid spacing times the rate at which its direction turns, so
+    compare fields on the same grid; a kink or a fold shows as the tail (``p90``, ``max``).
+
+    The box by default is the stability check's: the square of half-width ``box_factor``
+    extents around the target (:attr:`snds.stability.CheckConfig.box_factor`, 3), where the
+    check starts its rollouts.
+
+    Arguments:
+        field: A policy (anything with ``predict``), or a function from states (N, m) to
+            velocities (N, k), NumPy in, NumPy out, user units.
+        demos: The demonstrations that define the default box and center (their target and
+            extent); not needed with ``box`` and ``center``.
+        box: The grid's corners ``(low, high)`` in the first two coordinates, shape (2,) each.
+        center: A state, shape (m,): the coordinates beyond the first two are held at its
+            values (default: the demonstrations' target); its first two coordinates are
+            unused.
+        n: Points per side of the grid, at least 2.
+        box_factor: Half-width of the default box, in extents.
+
+    Returns:
+        The angles' median, 90th percentile, mean and maximum in degrees (NaN if no pair has
+        two directions), the pairs measured and skipped, and the spacing.
+
+    Raises:
+        DataError: (a ValueError) for ``n`` < 2, an empty or inverted box, a state of fewer
+            than two coordinates, neither ``demos`` nor ``box`` and ``center``, or a field
+            that returns a wrong shape.
+    """
+    if n < 2:
+        raise DataError(f"the grid needs n >= 2 points per side, got {n}")
+    if center is None:
+        if demos is None:
+            raise DataError("field_roughness needs demos, or both box and center")
+        center = demos.target
+    center = np.asarray(center, dtype=np.float64)
+    if center.ndim != 1 or center.shape[0] < 2:
+        raise DataError(f"center must be a state of >= 2 coordinates, got shape {center.shape}")
+    if box is None:
+        if demos is None:
+            raise DataError("field_roughness needs demos, or both box and center")
+        half = box_factor * demos.extent()
+        target = np.asarray(demos.target, dtype=np.float64)[:2]
+        low, high = target - half, target + half
+    else:
+        low, high = (np.asarray(b, dtype=np.float64).reshape(2) for b in box)
+    if not (high > low).all():
+        raise DataError(f"the box must have high > low in both coordinates, got {low}, {high}")
+    x1, x2 = np.linspace(low[0], high[0], n), np.linspace(low[1], high[1], n)
+    grid1, grid2 = np.meshgrid(x1, x2)  # (n, n), x2 along rows
+    points = np.tile(center, (n * n, 1))
+    points[:, 0], points[:, 1] = grid1.ravel(), grid2.ravel()
+    predict = getattr(field, "predict", field)
+    velocity = np.asarray(predict(points), dtype=np.float64)
+    if velocity.ndim != 2 or velocity.shape[0] != n * n:
+        raise DataError(
+            f"the field must return velocities of shape ({n * n}, k), got {velocity.shape}"
+        )
+    velocity = velocity.reshape(n, n, -1)
+    speed = np.linalg.norm(velocity, axis=-1)
+    finite = np.isfinite(speed)
+    top = float(speed[finite].max()) if finite.any() else 0.0
+    directed = finite & (speed > ROUGHNESS_ZERO_SPEED * top)
+    # Directions only where there is one; elsewhere any unit vector, masked out below.
+    unit = np.where(directed[..., None], velocity / np.where(directed, speed, 1.0)[..., None], 1.0)
+    pairs = [(unit[:, :-1], unit[:, 1:], directed[:, :-1] & directed[:, 1:])]  # along x1
+    pairs.append((unit[:-1], unit[1:], directed[:-1] & directed[1:]))  # along x2
+    angles = np.concatenate([np.degrees(_angles(u, v))[keep] for u, v, keep in pairs])
+    total = 2 * n * (n - 1)
+    spacing = (float(x1[1] - x1[0]), float(x2[1] - x2[0]))
+    if angles.size == 0:
+        nan = float("nan")
+        return Roughness(nan, nan, nan, nan, pairs=0, skipped=total, spacing=spacing)
+    return Roughness(
+        median=float(np.median(angles)),
+        p90=float(np.percentile(angles, 90)),
+        mean=float(angles.mean()),
+        max=float(angles.max()),
+        pairs=int(angles.size),
+        skipped=total - int(angles.size),
+        spacing=spacing,
+    )
