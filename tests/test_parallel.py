@@ -8,10 +8,11 @@ import operator
 import sys
 
 import pytest
+import torch
 from _parallel_calls import fail_first, power
 
 from snds.errors import ConfigError, SNDSError
-from snds.parallel import starmap_unordered
+from snds.parallel import starmap_unordered, torch_threads
 
 CALLS = [(base, exponent) for base in range(6) for exponent in (2, 3)]
 
@@ -102,3 +103,23 @@ def test_a_failure_on_dask_propagates() -> None:
         calls = [(".", 0, 0.0)]
         with pytest.raises(ValueError, match="call 0 fails"):
             list(starmap_unordered(fail_first, calls, scheduler=cluster.scheduler_address))
+
+
+def test_torch_threads_sets_the_count_inside_and_restores_it_after_an_error() -> None:
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        with pytest.raises(RuntimeError, match="inside"), torch_threads(1):
+            assert torch.get_num_threads() == 1
+            raise RuntimeError("inside")
+        assert torch.get_num_threads() == 2
+
+        @torch_threads(1)
+        def threads() -> int:
+            return torch.get_num_threads()
+
+        assert (threads(), threads(), torch.get_num_threads()) == (1, 1, 2)
+        with pytest.raises(ConfigError, match="at least 1"), torch_threads(0):
+            pass
+    finally:
+        torch.set_num_threads(before)

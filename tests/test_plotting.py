@@ -128,3 +128,31 @@ def test_panels_grid_with_an_empty_cell(tmp_path: Path) -> None:
     assert [p.name for p in tmp_path.iterdir()] == ["panels.png"]
     with pytest.raises(ValueError, match="at least one panel"):
         plot_panels([], tmp_path / "none.png")
+
+
+def test_panels_roll_out_on_one_torch_thread_and_restore_the_callers(tmp_path: Path) -> None:
+    # GIVEN a caller on two torch threads (a script's default on two cores) and a policy that
+    # records the threads it is evaluated with: on a busy machine several threads made the
+    # panels' thousands of small calls (an SDS-EF rollout: 29-65 s against 2-3 s) look hung
+    demos = line_demos()
+    policy = tiny_policy(demos)
+    seen: list[int] = []
+    field = policy.field
+
+    def recording(z: torch.Tensor) -> torch.Tensor:
+        seen.append(torch.get_num_threads())
+        return field(z)
+
+    policy.field = recording
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        # WHEN the panels are drawn
+        plot_panels([[Panel(policy, demos, "stable")]], tmp_path / "panels.png", random_starts=2)
+        after = torch.get_num_threads()
+    finally:
+        torch.set_num_threads(before)
+    # THEN every evaluation (rollouts and the streamlines' grid) ran on one thread, and the
+    # caller's two threads are back
+    assert seen and set(seen) == {1}
+    assert after == 2

@@ -24,7 +24,6 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from snds.data import LASA_NAMES, DataSource, split_samples
 from snds.data.files import LOADERS
@@ -35,7 +34,7 @@ from snds.io import atomic_write
 from snds.method import Fitted
 from snds.methods import METHODS, get_method
 from snds.models import load_model
-from snds.parallel import starmap_unordered
+from snds.parallel import starmap_unordered, torch_threads
 from snds.plotting import Panel, plot_panels
 from snds.policy import float64_copy
 from snds.runs import RunFolder
@@ -407,10 +406,8 @@ def run_batch(tasks: Sequence[Task], settings: SweepSettings) -> list[TaskOutput
     method = get_method(tasks[0].method)
     if any(task.method != method.name for task in tasks):
         raise SNDSError(f"a batch runs one method, got {sorted({t.method for t in tasks})}")
-    threads = torch.get_num_threads()
     # One thread per run: the networks are small, and runs side by side fill the cores.
-    torch.set_num_threads(1)
-    try:
+    with torch_threads(1):
         with _PeakMemory() as memory:
             data = []
             for task in tasks:
@@ -438,8 +435,6 @@ def run_batch(tasks: Sequence[Task], settings: SweepSettings) -> list[TaskOutput
                 )
                 for task, fitted, (demos, split) in zip(tasks, fits, data)
             ]
-    finally:
-        torch.set_num_threads(threads)
     return [
         _output(task, fitted, task_metrics, cpu, memory.peak)
         for task, fitted, task_metrics in zip(tasks, fits, metrics)

@@ -2,18 +2,22 @@
 
 The one way the library and the benchmarks run many trainings side by side: each call is a
 picklable top-level function and a tuple of its positional arguments, and each result comes
-back with the index of its call as soon as it is ready.
+back with the index of its call as soon as it is ready. :func:`torch_threads` sets how many
+threads torch may use inside one call (one, for the small networks here).
 """
 
 from __future__ import annotations
 
 import os
 from collections.abc import Callable, Iterable, Iterator, Sequence
+from contextlib import contextmanager
 from typing import Any, TypeVar
+
+import torch
 
 from snds.errors import ConfigError, SNDSError
 
-__all__ = ["starmap_unordered"]
+__all__ = ["starmap_unordered", "torch_threads"]
 
 R = TypeVar("R")
 
@@ -82,6 +86,34 @@ def starmap_unordered(
     if jobs == 1:
         return _here(function, calls)
     return _on_pool(function, calls, min(jobs, len(calls)))
+
+
+@contextmanager
+def torch_threads(count: int = 1) -> Iterator[None]:
+    """Runs a block (or, as a decorator, a function) with ``count`` torch CPU threads, then
+    restores the number before it.
+
+    The networks of this library are small and a rollout evaluates them on a handful of
+    states per step, thousands of times: each call is a few microseconds of arithmetic, and
+    with several OpenMP threads each also waits for the others to wake. Where other work
+    holds the cores (runs side by side, a shared machine) the waits dominate: an SDS-EF
+    rollout of the 7 LASA Sine starts (2,098 Euler steps) took 29-65 s on two threads against
+    1.7-2.8 s on one on a loaded 2-core machine (``benchmarks/README.md``, Smoothness).
+
+    Arguments:
+        count: Threads inside the block, at least 1.
+
+    Raises:
+        ConfigError: ``count`` below 1.
+    """
+    if count < 1:
+        raise ConfigError(f"torch threads must be at least 1, got {count}")
+    before = torch.get_num_threads()
+    torch.set_num_threads(count)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
 
 
 def _here(function: Callable[..., R], calls: list[tuple[Any, ...]]) -> Iterator[tuple[int, R]]:

@@ -25,6 +25,7 @@ from matplotlib.figure import Figure
 from snds.data.demonstrations import Demonstrations
 from snds.io import atomic_write
 from snds.obstacles import ModulatedPolicy, rollout_numpy_avoiding
+from snds.parallel import torch_threads
 from snds.policy import Policy
 from snds.rollout import rollout_numpy
 
@@ -98,6 +99,7 @@ class Panel:
     title: str
 
 
+@torch_threads(1)
 def plot_panels(
     rows: Sequence[Sequence[Panel | None]],
     path: str | Path,
@@ -111,6 +113,9 @@ def plot_panels(
     demonstrations' starts (solid) and from ``random_starts`` uniform starts in the view
     (dashed, the same starts for every panel of a column), each for twice the longest
     demonstration. A policy that fails shows it: dashed paths that stop short of the target.
+    The policies are evaluated with one torch thread (:func:`snds.parallel.torch_threads`):
+    a rollout calls a small network on a few states thousands of times, which several
+    threads slow down many times over on a busy machine.
 
     Arguments:
         rows: The panels, row by row; None leaves a cell empty.
