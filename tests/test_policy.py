@@ -169,3 +169,17 @@ def test_near_target_decay_is_the_stated_profile_and_holds(spiral):
     lhs = (grad_v * policy.field(x)).sum(-1)
     slack = 1e-9 * (grad_v.norm(dim=-1) * policy.nominal(x).norm(dim=-1) + v)
     assert (lhs <= -policy.decay(v, x) + slack).all()
+
+
+@pytest.mark.parametrize("warp_layers", [0, 3])
+def test_field_terms_are_the_field_and_v_of_one_pass(spiral, warp_layers):
+    policy = make_policy(spiral, dataclasses.replace(SMALL, warp_layers=warp_layers), seed=0)
+    policy = policy.double()
+    x = torch.randn(300, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+    terms = policy.field_terms(x)
+    value, grad = policy.lyapunov.value_and_grad(x)
+    # V alone (no gradient through the warp) is the value of the pass with the gradient, up
+    # to the last bits that a matrix product may round differently for another allocation.
+    torch.testing.assert_close(policy.lyapunov(x), value, rtol=1e-13, atol=0)
+    for got, wanted in zip(terms, (policy.field(x), policy.nominal(x), value, grad)):
+        torch.testing.assert_close(got, wanted, rtol=1e-13, atol=0)

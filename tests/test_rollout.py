@@ -6,6 +6,8 @@ from snds.rollout import converged_at, guarded_rollout, guarded_step, policy_gua
 
 from conftest import linear_policy, make_policy
 
+SEED = torch.Generator().manual_seed(0)
+
 
 def linear(x):
     return -x
@@ -94,3 +96,28 @@ def test_guarded_step_tests_the_state_its_own_advance_reaches():
     torch.testing.assert_close(stepped, advance(x, h, policy(x)))
     torch.testing.assert_close(new, lyapunov(stepped))
     assert (new <= value - 0.5 * h * rate(x, value)).all()
+
+
+def test_a_guarded_step_from_given_first_candidates_is_the_same_step(spiral):
+    # GIVEN a stiff warped policy whose guard shortens some steps, and the full steps' V
+    # evaluated by the caller together with the velocity there (as the stability check does)
+    policy = make_policy(spiral, seed=0).double()
+    with torch.no_grad():
+        for p in policy.nominal_net.parameters():
+            p.mul_(20.0)
+    lyapunov, rate = policy_guard(policy)
+    x = 3 * spiral.extent() * torch.randn(256, 2, dtype=torch.float64, generator=SEED)
+    # Half the states with a step short enough to keep, half with one the guard shortens.
+    dt = torch.where(torch.arange(256) % 2 == 0, 1e-6, 0.5).double()
+    candidate = x + dt.unsqueeze(-1) * policy(x)
+    velocity, value = policy.velocity_and_value(candidate)
+    torch.testing.assert_close(velocity, policy(candidate), rtol=0, atol=0)
+    torch.testing.assert_close(value, lyapunov(candidate), rtol=0, atol=0)
+    # WHEN the step starts from them
+    given = guarded_step(policy, lyapunov, x, dt=dt, rate=rate, first=(candidate, value))
+    # THEN it is the step computed from scratch, shortened where that one is (V up to the
+    # last bits, which a matrix product may round differently for another allocation)
+    plain = guarded_step(policy, lyapunov, x, dt=dt, rate=rate)
+    for a, b in zip(given, plain):
+        torch.testing.assert_close(a, b, rtol=1e-13, atol=0)
+    assert (given[1] < dt).any() and (given[1] == dt).any()

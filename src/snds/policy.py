@@ -10,7 +10,7 @@ from __future__ import annotations
 import copy
 from abc import ABC, abstractmethod
 from dataclasses import asdict, dataclass, replace
-from typing import Any, ClassVar, Protocol
+from typing import Any, ClassVar, NamedTuple, Protocol
 
 import numpy as np
 import torch
@@ -153,6 +153,22 @@ class PolicyConfig:
         return asdict(self)
 
 
+class FieldTerms(NamedTuple):
+    """A policy's field at states in model coordinates and what it is made of.
+
+    Attributes:
+        field: The policy, shape (*, n).
+        nominal: The nominal field it projects, (*, n); None if it projects none.
+        value: V, shape (*,); None without a Lyapunov function.
+        grad: The gradient of V, (*, n); None without a Lyapunov function.
+    """
+
+    field: Tensor
+    nominal: Tensor | None
+    value: Tensor | None
+    grad: Tensor | None
+
+
 class LyapunovFunction(Protocol):
     r"""What a policy's Lyapunov function offers the checks, in model coordinates.
 
@@ -241,6 +257,25 @@ class Policy(nn.Module, ABC):
     def field_and_nominal(self, x: Tensor) -> tuple[Tensor, Tensor | None]:
         """The field, (*, n), and the nominal field it projects (None if it projects none)."""
         return self.field(x), None
+
+    def field_terms(self, x: Tensor) -> FieldTerms:
+        """The field at states (*, n) in model coordinates with what it is made of, from one
+        pass where the field needs V anyway: V and its gradient for a policy with a Lyapunov
+        function (None otherwise), and the nominal field (None if it projects none)."""
+        field = self.field(x)
+        if not self.stable:
+            return FieldTerms(field, None, None, None)
+        value, grad = self.lyapunov.value_and_grad(x)
+        return FieldTerms(field, None, value, grad)
+
+    def velocity_and_value(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        """:meth:`forward`'s velocities (*, space.tangent_dim) and V in model coordinates
+        (*,) at user states (*, space.dim), in the policy's dtype: what a guarded step needs
+        at the state it reaches (see :func:`snds.rollout.policy_guard`). Only for a policy
+        with a Lyapunov function."""
+        z = self.to_model(x)
+        terms = self.field_terms(z)
+        return self.velocity_to_user(z, terms.field), terms.value
 
     def decay(self, v: Tensor, x: Tensor) -> Tensor:
         """The guaranteed decrease rate a(x) >= 0 of V, shape (*,); 0 by default.
@@ -422,11 +457,17 @@ class StablePolicy(Policy):
     def field_and_nominal(self, x: Tensor) -> tuple[Tensor, Tensor | None]:
         """The policy and the nominal field it projects, both (*, n), from one pass of f
         (None for the nominal of the unconstrained variant, which projects nothing)."""
+        terms = self.field_terms(x)
+        return terms.field, terms.nominal
+
+    def field_terms(self, x: Tensor) -> FieldTerms:
+        """The policy with its nominal field, V and grad V (see :class:`FieldTerms`), from one
+        pass of f and one of V."""
         f = self.nominal(x)
         if not self.stable:
-            return f, None
+            return FieldTerms(f, None, None, None)
         v, grad_v = self.lyapunov.value_and_grad(x)
-        return project(f, grad_v, self.decay(v, x), self.config.rectifier), f
+        return FieldTerms(project(f, grad_v, self.decay(v, x), self.config.rectifier), f, v, grad_v)
 
 
 def float64_copy(policy: Policy) -> Policy:

@@ -91,6 +91,7 @@ def guarded_step(
     max_halvings: int = 30,
     value: Tensor | None = None,
     advance: Advance = _euler_advance,
+    first: tuple[Tensor, Tensor] | None = None,
 ) -> tuple[Tensor, Tensor, Tensor]:
     r"""One Euler step per state, halved until it decreases V enough.
 
@@ -121,6 +122,9 @@ def guarded_step(
         value: V at ``x``, shape (B,), if known (the previous step returned it); else computed.
         advance: The step (x, h, velocity) -> next state; by default the Euler step
             :math:`x + h v`.
+        first: The full steps ``advance(x, dt, field(x))``, shape (B, n), and V there, (B,),
+            if the caller has them (it may have evaluated V there together with the field it
+            needs next: :meth:`snds.policy.Policy.velocity_and_value`); else computed.
 
     Returns:
         The next states, shape (B, n), the steps taken, shape (B,), and V at the next states,
@@ -131,8 +135,11 @@ def guarded_step(
         value = lyapunov(x)
     required = torch.zeros_like(value) if rate is None else sufficient * rate(x, value)
     h = dt.to(value).clone() if isinstance(dt, Tensor) else torch.full_like(value, dt)
-    candidate = advance(x, h, velocity)
-    new = lyapunov(candidate)
+    if first is None:
+        candidate = advance(x, h, velocity)
+        new = lyapunov(candidate)
+    else:
+        candidate, new = (t.clone() for t in first)
 
     def failing(index: Tensor) -> Tensor:
         old = value[index]

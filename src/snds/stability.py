@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 from snds.errors import ConfigError
-from snds.policy import Policy, float64_copy
+from snds.policy import FieldTerms, Policy, float64_copy
 from snds.rollout import guarded_step, policy_guard
 
 #: Random starts of the stability check by default. If every one of N independent uniform
@@ -137,7 +137,9 @@ class StabilityReport:
 
 
 @torch.no_grad()
-def decrease_violations(policy: Policy, x: torch.Tensor, *, rtol: float = 1e-9) -> int:
+def decrease_violations(
+    policy: Policy, x: torch.Tensor, *, rtol: float = 1e-9, terms: FieldTerms | None = None
+) -> int:
     r"""Counts states where :math:`\nabla V^\top \pi \le -a(x)` fails beyond rounding.
 
     Checked in model coordinates (a positive rescaling of user units, so the sign of the
@@ -149,21 +151,31 @@ def decrease_violations(policy: Policy, x: torch.Tensor, *, rtol: float = 1e-9) 
         policy: A stable policy, evaluated in the dtype of ``x`` (use float64).
         x: States in user units, shape (B, n).
         rtol: Relative rounding tolerance.
+        terms: The policy's :meth:`~snds.policy.Policy.field_terms` at ``x`` in model
+            coordinates, if the caller has them.
     """
     xm = policy.to_model(x)
-    value, grad = policy.lyapunov.value_and_grad(xm)
-    pi, f = policy.field_and_nominal(xm)
-    if f is None:
-        f = policy.nominal(xm)
+    if terms is None:
+        terms = policy.field_terms(xm)
+    # A policy need not use the V it carries (behavioural cloning keeps it unused).
+    value, grad = (
+        (terms.value, terms.grad) if terms.value is not None else policy.lyapunov.value_and_grad(xm)
+    )
+    f = terms.nominal if terms.nominal is not None else policy.nominal(xm)
     decay = policy.decay(value, xm)
-    lhs = (grad * pi).sum(-1)
+    lhs = (grad * terms.field).sum(-1)
     scale = grad.norm(dim=-1) * f.norm(dim=-1) + decay
     return int((lhs > -decay + rtol * scale).sum())
 
 
 @torch.no_grad()
 def largest_safe_step(
-    policy: Policy, x: torch.Tensor, *, upper: float, iterations: int = 60
+    policy: Policy,
+    x: torch.Tensor,
+    *,
+    upper: float,
+    iterations: int = 60,
+    terms: FieldTerms | None = None,
 ) -> float:
     r"""The largest Euler step h with :math:`V(x + h \pi(x)) \le V(x)` at every given state.
 
@@ -179,15 +191,20 @@ def largest_safe_step(
         x: States in user units, shape (B, n); the target itself is skipped.
         upper: The largest step tried, in seconds.
         iterations: Halvings of ``upper`` tried before giving up.
+        terms: The policy's :meth:`~snds.policy.Policy.field_terms` at ``x`` in model
+            coordinates, if the caller has them.
 
     Returns:
         The step in seconds, to a relative precision of 1e-7 (``upper`` if every state is
         safe at ``upper``; 0 if none is safe at ``upper`` / 2^iterations).
     """
     xm = policy.to_model(x)
-    xm = xm[xm.norm(dim=-1) > 0]
-    value = policy.lyapunov(xm)
-    velocity = policy.field(xm)
+    away = xm.norm(dim=-1) > 0
+    xm = xm[away]
+    if terms is None:
+        value, velocity = policy.lyapunov(xm), policy.field(xm)
+    else:
+        value, velocity = terms.value[away], terms.field[away]
     # At tiny steps V's change falls below the rounding error of V itself (a Bregman
     # difference of terms of the size of g, which may be 1e3 and more), which may show as a
     # rise: seen at 5.5e-8 V near the target of a trained model. An overshooting step raises V
@@ -293,8 +310,9 @@ def check_stability(
         points = space.uniform(target, config.sample_box_factor * extent, config.samples, rng)
         for begin in range(0, config.samples, config.chunk):
             batch = torch.as_tensor(points[begin : begin + config.chunk], device=device)
-            violations += decrease_violations(policy, batch)
-            safe_dt = min(safe_dt, largest_safe_step(policy, batch, upper=safe_dt))
+            terms = policy.field_terms(policy.to_model(batch))
+            violations += decrease_violations(policy, batch, terms=terms)
+            safe_dt = min(safe_dt, largest_safe_step(policy, batch, upper=safe_dt, terms=terms))
         checked = config.samples
     scales = space.error_scales(extent)
     finite = bool(torch.isfinite(errors).all())
@@ -476,8 +494,9 @@ def _roll_out_and_settle(
         radius = 0.5 * tolerance / float(reach.max())
         level = settle_level(policy.lyapunov, radius, dim=policy.dim)
         lyapunov, rate = policy_guard(policy)
-        value = lyapunov(x)
-    velocity = policy(x)
+        velocity, value = policy.velocity_and_value(x)
+    else:
+        velocity = policy(x)
     arrival[(errors(x) > tolerance).any(dim=-1)] = float("nan")
     # The budget of fixed steps at dt: steps the guard shortens still count as steps, so a
     # field so stiff that the guard shrinks every step ends after as many steps as before.
@@ -502,21 +521,29 @@ def _roll_out_and_settle(
         reach = 0.05 * distance / (va / tangent_scales).norm(dim=-1)
         ha = torch.minimum(ha, reach.nan_to_num(nan=dt).clamp_min(dt))
         ha = torch.minimum(ha, horizon - time[active])
+        candidate = space.advance(xa, ha, va)
         if value is not None:
             before = value[active]
+            # V at the full step comes from the pass that gives the velocity there; only the
+            # steps the guard shortens need the velocity again.
+            v_new, new = policy.velocity_and_value(candidate)
+            full = ha
             candidate, ha, new = guarded_step(
                 lambda _, v=va: v,
                 lyapunov,
                 xa,
-                dt=ha,
+                dt=full,
                 rate=rate,
                 value=before,
                 advance=space.advance,
                 max_halvings=config.max_halvings,
+                first=(candidate, new),
             )
+            shorter = (ha < full).nonzero()[:, 0]
+            if len(shorter):
+                v_new[shorter] = policy(candidate[shorter])
         else:
-            candidate, new = space.advance(xa, ha, va), None
-        v_new = policy(candidate)
+            v_new, new = policy(candidate), None
         error = 0.5 * ha * ((v_new - va) / tangent_scales).norm(dim=-1)
         # A step no longer than the data's is always accepted: at worst the check integrates
         # as plain (guarded) Euler at dt, never slower.

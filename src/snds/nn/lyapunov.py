@@ -154,5 +154,10 @@ class WarpedLyapunov(nn.Module):
         return value, grad
 
     def forward(self, x: Tensor) -> Tensor:
-        """V at states (*, n), shape (*,)."""
-        return self.value_and_grad(x)[0]
+        """V at states (*, n), shape (*,): the value of :meth:`value_and_grad`, without the
+        Jacobian product through the warp that only the gradient needs."""
+        n = x.shape[-1]
+        flat = x if x.dim() == 2 else x.reshape(-1, n)
+        z, _ = self.warp.centred(flat)
+        value = self.convex(z[:-1])
+        return value if x.dim() == 2 else value.reshape(x.shape[:-1])
