@@ -19,7 +19,14 @@ pytest.importorskip("sklearn", reason="LPV-DS needs the baselines extra (scikit-
 pytest.importorskip("cvxpy", reason="LPV-DS needs the baselines extra (cvxpy)")
 
 from snds.baselines import lpvds  # noqa: E402
-from snds.baselines.lpvds import LPVDS, LPVDSPolicy  # noqa: E402
+from snds.baselines.lpvds import (  # noqa: E402
+    LPVDS,
+    LPVDSPolicy,
+    fit_lyapunov_matrix,
+    lyapunov_matrix_from_factor,
+    physically_consistent_mixture,
+    similarity,
+)
 from snds.baselines.mixture import MixtureConfig  # noqa: E402
 from snds.methods import METHODS, POLICY_KINDS  # noqa: E402
 from snds.models import load_model, save_model  # noqa: E402
@@ -231,3 +238,82 @@ def test_unfitted_policy_is_stable_and_rebuilds_from_its_config():
     x = torch.randn(10, 2)
     torch.testing.assert_close(policy(x), -x)
     assert MixtureConfig(**policy.config.to_dict()) == policy.config
+
+
+def test_lyapunov_parametrisation_has_trace_n_and_the_eigenvalue_floor():
+    generator = torch.Generator().manual_seed(0)
+    for n in (2, 3):
+        for _ in range(50):
+            factor = torch.randn(n, n, dtype=torch.float64, generator=generator)
+            factor[0] *= 1e-6  # nearly singular M: the floor must still hold
+            p = lyapunov_matrix_from_factor(factor, 0.1)
+            values = torch.linalg.eigvalsh(p)
+            assert float(torch.trace(p)) == pytest.approx(n)
+            assert values.min() >= 0.1 - 1e-12 and values.max() <= n
+
+
+def test_the_p_estimate_finds_a_v_the_demonstrations_descend_where_identity_fails():
+    # GIVEN samples of x' = A x, stable, whose symmetric part is indefinite: under V = |x|^2
+    # a good share of them climb, but V = x^T P x with A^T P + P A < 0 exists.
+    a = np.array([[-1.0, 6.0], [0.0, -1.0]])
+    rng = np.random.default_rng(0)
+    angles = rng.uniform(0, 2 * np.pi, 500)
+    x = np.stack([np.cos(angles), np.sin(angles)], 1) * rng.uniform(0.1, 1, (500, 1))
+    v = x @ a.T
+    # WHEN P is estimated, with the paper's small reward w for descending samples, or none
+    p, record = fit_lyapunov_matrix(x, v, min_eigenvalue=0.01, weight=1e-4, starts=3, seed=0)
+    strict, strict_record = fit_lyapunov_matrix(
+        x, v, min_eigenvalue=0.01, weight=0.0, starts=3, seed=0
+    )
+    # THEN 2 in 5 samples climb |x|^2, at most 1 in 50 climb V (w trades a few nearly flat
+    # climbs for steeper descents elsewhere), and none with w = 0
+    assert record["climbing_identity"] == pytest.approx(0.4, abs=0.05)
+    assert record["climbing"] <= 0.02 and record["objective"] < record["objective_identity"]
+    psi = ((x @ p) * v).sum(-1) / np.linalg.norm(x @ p, axis=1) / np.linalg.norm(v, axis=1)
+    assert psi.max() < 0.05
+    assert strict_record["climbing"] == 0 and ((x @ strict) * v).sum(-1).max() <= 0
+    for matrix in (p, strict):
+        assert np.trace(matrix) == pytest.approx(2)
+        assert np.linalg.eigvalsh(matrix).min() >= 0.01 - 1e-12
+
+
+def test_similarity_by_hand():
+    x = np.array([[0.0, 0.0], [0.3, 0.4], [0.0, 0.0], [1.0, 0.0]])
+    v = np.array([[1.0, 0.0], [2.0, 0.0], [-1.0, 0.0], [0.0, 0.0]])
+    s = similarity(x, v, length_scale=0.5)
+    assert s[0, 1] == pytest.approx(np.exp(-0.25 / 0.5))  # same direction, distance 0.5
+    assert s[0, 2] == 0  # same place, opposite directions
+    assert s[1, 1] == 1
+    assert s[0, 3] == pytest.approx(0.5 * np.exp(-1 / 0.5))  # at rest: a half-match
+    np.testing.assert_allclose(s, s.T)
+
+
+def test_physically_consistent_clusters_separate_opposite_lanes():
+    # GIVEN a hairpin: right along y = +0.1, then back left along y = -0.1
+    t = np.linspace(-1, 1, 200)
+    x = np.concatenate([np.stack([t, 0.1 + 0 * t], 1), np.stack([t[::-1], -0.1 + 0 * t], 1)])
+    v = np.concatenate([np.tile([1.0, 0.0], (200, 1)), np.tile([-1.0, 0.0], (200, 1))])
+    # WHEN two clusters are asked for
+    mixture = physically_consistent_mixture(
+        x, v, components=2, max_components=2, length_scale=0.1, reg_covar=1e-4, seed=0
+    )
+    # THEN each is one lane (a mixture over positions alone would split left from right)
+    assert sorted(np.round(mixture.means[:, 1], 6)) == [-0.1, 0.1]
+    np.testing.assert_allclose(mixture.weights, [0.5, 0.5])
+    np.testing.assert_allclose(mixture.means[:, 0], [0, 0], atol=1e-12)
+
+
+def test_paper_variants_fit_and_stay_stable(spiral_split):
+    demos, split = spiral_split
+    for features in ("position_velocity", "position"):
+        for estimate in (True, False):
+            method = dataclasses.replace(
+                LPVDS(), features=features, estimate_lyapunov=estimate, max_components=3
+            )
+            fitted = method.fit(demos, split, seed=0)
+            assert (lie_derivative_eigenvalues(fitted.policy) < 0).all()
+            if not estimate:
+                p = fitted.policy.lyapunov.matrix.numpy()
+                np.testing.assert_array_equal(p, np.eye(2))
+    with pytest.raises(ValueError, match="features"):
+        LPVDS(features="velocity")

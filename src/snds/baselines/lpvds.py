@@ -6,26 +6,34 @@ Dynamical System Learning", CoRL 2018. In model coordinates (target at 0),
 .. math:: \dot x = \sum_k \gamma_k(x) A_k x, \qquad V(x) = x^\top P x,
 
 with :math:`\gamma_k` the posterior responsibilities of a Gaussian mixture over positions.
-The fit has three steps, written here from the paper's maths:
+The fit has the paper's three steps:
 
-1. **Mixture.** A full-covariance Gaussian mixture (scikit-learn EM, seeded), K chosen by
-   BIC over 1..K_max, fitted by default to the training pairs :math:`(x, \dot x)` and
-   marginalised to positions (``features="position"`` fits positions alone). The paper uses
-   a Bayesian non-parametric, "physically consistent" mixture whose clusters also respect
-   the motion's direction; the joint mixture is a plain stand-in with the same aim, and it
-   fits better than the mixture over positions (docs/design.md, "The baselines' defaults").
-2. **Lyapunov matrix P** (convex stand-in for the paper's non-convex estimate):
+1. **Mixture** (``features``). By default (``"physically_consistent"``) an approximation of
+   the paper's physically-consistent GMM: the samples are clustered on the paper's
+   similarity, which mixes closeness and the direction of motion,
 
-   .. math:: \min_P \frac1N \sum_i \max\Big(0, \frac{x_i^\top P \dot x_i}
-       {\|x_i\| \|\dot x_i\|}\Big) + \lambda \|P - I\|_F^2
-       \quad \text{s.t.} \quad P \succeq p_{\min} I, \ \operatorname{tr} P = n.
+   .. math:: s_{ij} = \tfrac12 \Big(1 + \frac{\dot x_i^\top \dot x_j}{\|\dot x_i\|
+       \|\dot x_j\|}\Big) \exp\Big(-\frac{\|x_i - x_j\|^2}{2 \ell^2}\Big),
 
-   The hinge counts, with every sample weighted alike (hence the normalisation), how much
-   the demonstrations themselves climb V; a P under which they descend leaves the LMIs below
-   free to fit them. The trace fixes the scale (V and its sign pattern are scale-free), the
-   floor :math:`p_{\min}` bounds the condition number (a nearly singular P would make V
-   almost flat in one direction), and the small :math:`\lambda` picks, among equally good
-   P, the least anisotropic one (P = I, SEDS's V, when that already works).
+   by spectral clustering (one embedding, k-means for every K) instead of the paper's
+   collapsed Gibbs sampler of a distance-dependent CRP; each cluster gives a Gaussian over
+   positions (its sample mean and covariance), and K is the one of lowest BIC over
+   2..K_max, standing in for the non-parametric prior's choice. ``"position_velocity"`` (a
+   scikit-learn EM mixture over :math:`(x, \dot x)`, marginalised to positions) and
+   ``"position"`` (EM over positions) are the plain alternatives, K by BIC over 1..K_max.
+2. **Lyapunov matrix P**, estimated from the data before the linear systems (the paper's
+   "P-QLF" variant, with the estimator of Khansari-Zadeh & Billard 2014 that its code uses):
+
+   .. math:: \min_P \frac1N \sum_i J(\psi_i), \quad \psi_i = \frac{(P x_i)^\top \dot x_i}
+       {\|P x_i\| \|\dot x_i\|}, \quad J(\psi) = \begin{cases} \psi^2 & \psi > 0 \\
+       -w \psi^2 & \psi \le 0 \end{cases}
+
+   (w = 1e-4), the squared cosine of every sample that climbs V, less a small reward for
+   descending ones. :math:`\psi` does not depend on P's scale, which is fixed by
+   :math:`P = p_{\min} I + n (1 - p_{\min}) M / \operatorname{tr} M`, :math:`M = L L^\top`
+   (so :math:`\operatorname{tr} P = n` and :math:`\lambda_{\min}(P) \ge p_{\min}`: a nearly
+   singular P would make V flat in one direction). The problem is not convex: L-BFGS from
+   P = I and from seeded random starts, keeping the best.
 3. **Linear systems** by a convex least-squares program with linear matrix inequalities:
 
    .. math:: \min_{A_1..A_K} \frac1N \sum_i \Big\|\dot x_i - \sum_k \gamma_k(x_i) A_k x_i
@@ -35,10 +43,10 @@ The fit has three steps, written here from the paper's maths:
    The residual is linear in the :math:`A_k`, so a QR factorisation of its design matrix
    reduces the N samples to a (Kn x Kn) system: the program's size does not grow with N.
 
-Solved with cvxpy and Clarabel (or SCS). The default :math:`\epsilon = 0.05` (per unit of
-model time, in which a demonstration lasts a few units) was chosen by measurement
-(docs/design.md, "The baselines' defaults"): smaller margins let blends far from the data
-contract too slowly to arrive in useful time.
+Solved with cvxpy and Clarabel (or SCS). :math:`\epsilon` is a margin in model units (per
+unit of model time, in which a demonstration lasts a few units); the paper's is a small
+numerical one. The defaults were chosen by measurement (docs/design.md, "The baselines'
+defaults"; benchmarks/README.md, "Baselines: how faithful they are").
 
 **Guarantee:** after solving, the stored :math:`A_k` and P are checked in float64
 (:func:`~snds.baselines.mixture.stability_margin`): :math:`P \succ 0` and
@@ -50,11 +58,15 @@ then falls back to P = I; if nothing verifies, it refuses.
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import asdict, dataclass
 from typing import Any, ClassVar
 
 import numpy as np
+import torch
+from scipy.optimize import minimize
+from torch import Tensor
 
 from snds.baselines.mixture import (
     MixtureConfig,
@@ -108,50 +120,200 @@ def _solve(problem: Any, solver: str) -> str:
     return str(problem.status)
 
 
+def similarity(x: np.ndarray, velocities: np.ndarray, length_scale: float) -> np.ndarray:
+    r"""The paper's physically-consistent similarity :math:`s_{ij}` of samples, shape (N, N).
+
+    :math:`s_{ij} = \frac12 (1 + \cos \angle(\dot x_i, \dot x_j))
+    \exp(-\|x_i - x_j\|^2 / 2\ell^2)`, in [0, 1], 1 on the diagonal of moving samples; a
+    sample at rest counts as every direction's half-match.
+
+    Arguments:
+        x: Positions, shape (N, n).
+        velocities: Their velocities, shape (N, n).
+        length_scale: :math:`\ell`, in the units of x.
+    """
+    speed = np.linalg.norm(velocities, axis=1, keepdims=True)
+    directions = np.divide(velocities, speed, out=np.zeros_like(velocities), where=speed > 0)
+    squared = ((x[:, None, :] - x[None, :, :]) ** 2).sum(-1)
+    return 0.5 * (1.0 + directions @ directions.T) * np.exp(-squared / (2.0 * length_scale**2))
+
+
+def position_bic(x: np.ndarray, mixture: MixtureFit) -> float:
+    r""":math:`-2 \log L + p \log N` of a full-covariance mixture over positions (N, n)."""
+    k, n = mixture.means.shape
+    log_density = np.stack(
+        [
+            np.log(w)
+            - 0.5 * np.linalg.slogdet(2 * np.pi * c)[1]
+            - 0.5 * np.einsum("ij,jk,ik->i", x - m, np.linalg.inv(c), x - m)
+            for w, m, c in zip(mixture.weights, mixture.means, mixture.covariances)
+        ]
+    )
+    peak = log_density.max(0)
+    log_likelihood = float((peak + np.log(np.exp(log_density - peak).sum(0))).sum())
+    parameters = k * (n + n * (n + 1) // 2) + k - 1
+    return -2.0 * log_likelihood + parameters * math.log(len(x))
+
+
+def physically_consistent_mixture(
+    x: np.ndarray,
+    velocities: np.ndarray,
+    *,
+    components: int | None,
+    max_components: int,
+    length_scale: float,
+    reg_covar: float,
+    seed: int,
+) -> MixtureFit:
+    r"""Clusters samples on :func:`similarity` and fits a Gaussian over positions per cluster.
+
+    Spectral clustering (Ng, Jordan & Weiss): the leading eigenvectors of the normalised
+    similarity, once, then seeded k-means on the first K of them, row-normalised, for every
+    K tried; each cluster's Gaussian is its positions' mean and covariance (plus
+    ``reg_covar`` on the diagonal), weighted by its share of samples; K is ``components``
+    or the lowest :func:`position_bic` over 2..``max_components``.
+
+    Arguments:
+        x: Positions in model coordinates, shape (N, n).
+        velocities: Their velocities, shape (N, n).
+        components: A fixed K, or None to choose by BIC.
+        max_components: The largest K tried.
+        length_scale: :math:`\ell` of the similarity, model units.
+        reg_covar: Added to every covariance's diagonal (squared model units).
+        seed: Seed of the embedding's solver and of k-means.
+    """
+    spectral_embedding = require("sklearn.manifold").spectral_embedding
+    k_means = require("sklearn.cluster").KMeans
+    n = x.shape[1]
+    largest = min(components or max_components, len(x) // (n + 1))
+    if largest < 1:
+        raise SNDSError(f"cannot fit a mixture to {len(x)} points")
+    embedding = spectral_embedding(
+        similarity(x, velocities, length_scale),
+        n_components=largest,
+        drop_first=False,
+        random_state=seed,
+    )
+    candidates = [largest] if components is not None else range(min(2, largest), largest + 1)
+    best, best_bic, bic = None, math.inf, {}
+    for k in candidates:
+        rows = (
+            embedding[:, :k] / np.maximum(np.linalg.norm(embedding[:, :k], axis=1), 1e-12)[:, None]
+        )
+        labels = k_means(n_clusters=k, n_init=4, random_state=seed).fit_predict(rows)
+        # A cluster of fewer than n + 1 points has no covariance: it joins no Gaussian.
+        members = [labels == j for j in range(k) if (labels == j).sum() > n]
+        counts = np.array([m.sum() for m in members], dtype=np.float64)
+        mixture = MixtureFit(
+            weights=counts / counts.sum(),
+            means=np.stack([x[m].mean(0) for m in members]),
+            covariances=np.stack(
+                [np.atleast_2d(np.cov(x[m].T)) + reg_covar * np.eye(n) for m in members]
+            ),
+            bic={},
+        )
+        bic[k] = position_bic(x, mixture)
+        if bic[k] < best_bic:
+            best, best_bic = mixture, bic[k]
+    assert best is not None  # candidates is never empty
+    return MixtureFit(best.weights, best.means, best.covariances, bic)
+
+
+def lyapunov_matrix_from_factor(factor: Tensor, min_eigenvalue: float) -> Tensor:
+    r""":math:`P = p_{\min} I + n (1 - p_{\min}) M / \operatorname{tr} M` with
+    :math:`M = L L^\top`: trace n, every eigenvalue in :math:`[p_{\min}, n]`.
+
+    Arguments:
+        factor: L, shape (n, n) (any square matrix; only :math:`L L^\top` matters).
+        min_eigenvalue: :math:`p_{\min} \in (0, 1)`.
+    """
+    n = factor.shape[-1]
+    m = factor @ factor.T
+    eye = torch.eye(n, dtype=factor.dtype)
+    return min_eigenvalue * eye + n * (1.0 - min_eigenvalue) * m / torch.trace(m)
+
+
+def lyapunov_violation(p: Tensor, x: Tensor, velocities: Tensor, weight: float) -> Tensor:
+    r"""The P-QLF objective :math:`\frac1N \sum_i J(\psi_i)` (step 2 of the module docstring).
+
+    Arguments:
+        p: P, shape (n, n), symmetric positive definite.
+        x: Positions in model coordinates, none at the target, shape (N, n).
+        velocities: Their velocities, none zero, shape (N, n).
+        weight: w >= 0, the reward for descending samples.
+    """
+    px = x @ p
+    psi = (px * velocities).sum(-1) / (px.norm(dim=-1) * velocities.norm(dim=-1))
+    return torch.where(psi > 0, psi**2, -weight * psi**2).mean()
+
+
 def fit_lyapunov_matrix(
     x: np.ndarray,
     velocities: np.ndarray,
     *,
     min_eigenvalue: float,
-    smoothing: float,
-    solver: str,
+    weight: float,
+    starts: int,
+    seed: int,
 ) -> tuple[np.ndarray | None, dict]:
-    r"""The convex estimate of P (step 2 of the module docstring).
+    r"""The data-driven estimate of P (step 2 of the module docstring).
 
     Arguments:
         x: Positions in model coordinates, shape (N, n).
         velocities: Their velocities, shape (N, n).
         min_eigenvalue: :math:`p_{\min}`, below 1 (the trace is n).
-        smoothing: :math:`\lambda`, the pull towards I.
-        solver: A cvxpy solver name.
+        weight: w of the objective.
+        starts: L-BFGS runs: from P = I, then from seeded random factors.
+        seed: Seed of the random starts.
 
     Returns:
-        P, shape (n, n) (None if the solver failed), and a record (status, the mean hinge
-        before and after, i.e. with P = I and with P).
+        P, shape (n, n) (None if no run ended finite), and a record (the objective and the
+        fraction of samples that climb V, with P = I and with P; the runs).
     """
-    import cvxpy as cp
-
     n = x.shape[1]
-    scale = np.linalg.norm(x, axis=1) * np.linalg.norm(velocities, axis=1)
-    keep = scale > 1e-12  # the target itself and standstills carry no direction
-    # x^T P v = <P, x v^T>: one row of coefficients per sample, linear in P's entries.
-    outer = (x[keep, :, None] * velocities[keep, None, :] / scale[keep, None, None]).reshape(
-        -1, n * n
-    )
-    p = cp.Variable((n, n), symmetric=True)
-    hinge = cp.sum(cp.pos(outer @ cp.reshape(p, (n * n,), order="C"))) / max(len(outer), 1)
-    problem = cp.Problem(
-        cp.Minimize(hinge + smoothing * cp.sum_squares(p - np.eye(n))),
-        [p >> min_eigenvalue * np.eye(n), cp.trace(p) == n],
-    )
-    status = _solve(problem, solver)
-    identity_hinge = float(np.maximum(outer @ np.eye(n).ravel(), 0).mean()) if len(outer) else 0
-    record = {"status": status, "hinge_identity": identity_hinge}
-    if status not in ("optimal", "optimal_inaccurate") or p.value is None:
+    # The target itself and standstills carry no direction.
+    keep = (np.linalg.norm(x, axis=1) > 1e-12) & (np.linalg.norm(velocities, axis=1) > 1e-12)
+    xs = torch.as_tensor(x[keep], dtype=torch.float64)
+    vs = torch.as_tensor(velocities[keep], dtype=torch.float64)
+    rows, cols = np.tril_indices(n)
+    index = (torch.as_tensor(rows), torch.as_tensor(cols))
+
+    def factor(theta: Tensor) -> Tensor:
+        return torch.zeros(n, n, dtype=torch.float64).index_put(index, theta)
+
+    def objective(theta: np.ndarray) -> tuple[float, np.ndarray]:
+        t = torch.as_tensor(theta, dtype=torch.float64).requires_grad_(True)
+        p = lyapunov_matrix_from_factor(factor(t), min_eigenvalue)
+        loss = lyapunov_violation(p, xs, vs, weight)
+        (grad,) = torch.autograd.grad(loss, t)
+        return float(loss.detach()), grad.numpy()
+
+    def climbing(p: np.ndarray) -> float:
+        return float((((x[keep] @ p) * velocities[keep]).sum(-1) > 0).mean())
+
+    identity = np.eye(n)[rows, cols]
+    rng = np.random.default_rng(seed)
+    initial = [identity] + [rng.normal(size=len(rows)) for _ in range(max(starts, 1) - 1)]
+    with torch.no_grad():
+        at_identity = float(lyapunov_violation(torch.eye(n, dtype=torch.float64), xs, vs, weight))
+    record: dict = {"objective_identity": at_identity, "climbing_identity": climbing(np.eye(n))}
+    best, runs = None, []
+    for theta in initial:
+        result = minimize(
+            objective, theta, jac=True, method="L-BFGS-B", options={"ftol": 1e-12, "gtol": 1e-10}
+        )
+        runs.append({"objective": float(result.fun), "iterations": int(result.nit)})
+        if np.isfinite(result.fun) and (best is None or result.fun < best.fun):
+            best = result
+    record["runs"] = runs
+    if best is None:
         return None, record
-    value = 0.5 * (p.value + p.value.T)
-    record["hinge"] = float(np.maximum(outer @ value.ravel(), 0).mean()) if len(outer) else 0
-    return value, record
+    with torch.no_grad():
+        p = lyapunov_matrix_from_factor(factor(torch.as_tensor(best.x)), min_eigenvalue)
+        p = p.numpy()
+    p = 0.5 * (p + p.T)
+    record |= {"objective": float(best.fun), "climbing": climbing(p)}
+    return p, record
 
 
 def fit_linear_systems(
@@ -205,26 +367,33 @@ def fit_linear_systems(
     return matrices_from_coefficients(value), record
 
 
+#: The mixtures of step 1 (:attr:`LPVDS.features`).
+FEATURES = ("physically_consistent", "position_velocity", "position")
+
+
 @dataclass(frozen=True)
 class LPVDS(Method):
-    """LPV-DS fitted by a mixture, a convex P estimate and an LMI-constrained least squares.
+    """LPV-DS fitted by a physically-consistent mixture, a data-driven P and an
+    LMI-constrained least squares (the three steps of the module docstring).
 
     Attributes:
         name: "lpvds".
         description: One line for tables.
         has_lyapunov: True: V = x^T P x.
-        components: A fixed K, or None to choose it by BIC over 1..``max_components``.
+        components: A fixed K, or None to choose it by BIC over ..``max_components``.
         max_components: K_max of the BIC search.
         eps: epsilon of the LMIs A_k^T P + P A_k <= -eps I, in model units (1 / model time).
         min_eigenvalue: p_min of P (with trace P = n).
-        smoothing: lambda, the pull of P towards I.
+        lyapunov_weight: w of the P objective (the reward for samples that descend V).
+        lyapunov_starts: L-BFGS runs of the P estimate (the first from P = I).
+        estimate_lyapunov: False: P = I (the paper's "QLF" variant, SEDS's V).
         ridge: beta, the pull of the A_k towards 0.
         reg_covar: Floor added to the mixture's covariances (squared model units).
-        features: What the mixture is fitted to: "position" (x), or "position_velocity"
-            (x, xdot), whose clusters also separate differing motion directions (the aim of
-            the paper's physically consistent mixture); either way gamma_k uses the mixture
-            over x (the marginal).
-        max_samples: Training samples used for the mixture and the P program (0: all);
+        features: How the mixture is found: "physically_consistent" (clusters of the
+            paper's position-and-direction similarity), "position_velocity" (EM over
+            (x, xdot)) or "position" (EM over x); gamma_k always uses the Gaussians over x.
+        length_scale: l of the physically-consistent similarity, model units (extent 1).
+        max_samples: Training samples used for the mixture and the P estimate (0: all);
             the A_k program uses all (its size does not depend on N).
         solver: cvxpy solver ("CLARABEL" or "SCS"); the other one is tried if it fails.
     """
@@ -236,18 +405,19 @@ class LPVDS(Method):
     max_components: int = 20
     eps: float = 0.05
     min_eigenvalue: float = 0.1
-    smoothing: float = 1e-3
+    lyapunov_weight: float = 1e-4
+    lyapunov_starts: int = 4
+    estimate_lyapunov: bool = True
     ridge: float = 1e-6
     reg_covar: float = 1e-4
-    features: str = "position_velocity"
+    features: str = "physically_consistent"
+    length_scale: float = 0.1
     max_samples: int = 2000
     solver: str = "CLARABEL"
 
     def __post_init__(self) -> None:
-        if self.features not in ("position", "position_velocity"):
-            raise ValueError(
-                f"features must be 'position' or 'position_velocity', not {self.features!r}"
-            )
+        if self.features not in FEATURES:
+            raise ValueError(f"features must be one of {FEATURES}, not {self.features!r}")
 
     def fit(
         self,
@@ -279,14 +449,25 @@ class LPVDS(Method):
         require("sklearn.mixture")
         start = time.perf_counter()
         few = subsample(len(x), self.max_samples, rng)
-        points = x[few] if self.features == "position" else np.concatenate([x, v], 1)[few]
-        mixture = fit_mixture(
-            points,
-            components=self.components,
-            max_components=self.max_components,
-            seed=seed,
-            reg_covar=self.reg_covar,
-        ).marginal(demos.dim)
+        if self.features == "physically_consistent":
+            mixture = physically_consistent_mixture(
+                x[few],
+                v[few],
+                components=self.components,
+                max_components=self.max_components,
+                length_scale=self.length_scale,
+                reg_covar=self.reg_covar,
+                seed=seed,
+            )
+        else:
+            points = x[few] if self.features == "position" else np.concatenate([x, v], 1)[few]
+            mixture = fit_mixture(
+                points,
+                components=self.components,
+                max_components=self.max_components,
+                seed=seed,
+                reg_covar=self.reg_covar,
+            ).marginal(demos.dim)
         policy = LPVDSPolicy(
             dim=demos.dim,
             normalization=normalization,
@@ -294,7 +475,7 @@ class LPVDS(Method):
         )
         fallbacks: list[str] = []
         solvers = [self.solver] + [s for s in ("CLARABEL", "SCS") if s != self.solver]
-        p, p_record = self._lyapunov_matrix(x[few], v[few], solvers, fallbacks)
+        p, p_record = self._lyapunov_matrix(x[few], v[few], seed, fallbacks)
         p, margin, a_record = self._linear_systems(policy, mixture, x, v, p, solvers, fallbacks)
         seconds = time.perf_counter() - start
         record = {
@@ -318,28 +499,32 @@ class LPVDS(Method):
         return Fitted(policy=policy, seconds=seconds, record=record)
 
     def _lyapunov_matrix(
-        self, x: np.ndarray, v: np.ndarray, solvers: list[str], fallbacks: list[str]
+        self, x: np.ndarray, v: np.ndarray, seed: int, fallbacks: list[str]
     ) -> tuple[np.ndarray, dict]:
-        """P from :func:`fit_lyapunov_matrix` with the first solver that succeeds, else I.
+        """P from :func:`fit_lyapunov_matrix`, or I if not estimated or if the estimate failed.
 
         Arguments:
             x: Positions (N, n) in model coordinates.
             v: Their velocities (N, n).
-            solvers: cvxpy solvers to try in order.
+            seed: Seed of the estimate's random starts.
             fallbacks: Appended with what failed.
 
         Returns:
-            P, shape (n, n), and the program's record.
+            P, shape (n, n), and the estimate's record.
         """
-        record: dict = {}
-        for solver in solvers:
-            p, record = fit_lyapunov_matrix(
-                x, v, min_eigenvalue=self.min_eigenvalue, smoothing=self.smoothing, solver=solver
-            )
-            record["solver"] = solver
-            if p is not None:
-                return p, record
-            fallbacks.append(f"P program {record['status']} with {solver}")
+        if not self.estimate_lyapunov:
+            return np.eye(x.shape[1]), {"status": "P = I (not estimated)"}
+        p, record = fit_lyapunov_matrix(
+            x,
+            v,
+            min_eigenvalue=self.min_eigenvalue,
+            weight=self.lyapunov_weight,
+            starts=self.lyapunov_starts,
+            seed=seed,
+        )
+        if p is not None:
+            return p, record
+        fallbacks.append("P estimate not finite")
         fallbacks.append("P = I")
         return np.eye(x.shape[1]), record
 
