@@ -2,8 +2,8 @@
 :class:`~snds.method.Method`.
 
 * :mod:`snds.baselines.lpvds`: LPV-DS (Figueroa & Billard, CoRL 2018), a Gaussian-mixture
-  blend of linear systems with one shared quadratic Lyapunov function, fitted by a convex
-  program.
+  blend of linear systems with one shared quadratic Lyapunov function: a physically-consistent
+  mixture, P estimated from the data, then the linear systems by a convex program.
 * :mod:`snds.baselines.seds`: SEDS (Khansari-Zadeh & Billard, T-RO 2011), Gaussian mixture
   regression whose every component is a stable linear system.
 * :mod:`snds.baselines.sdsef`: SDS-EF (Rana et al., L4DC 2020), a learned diffeomorphism
