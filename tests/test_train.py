@@ -192,7 +192,8 @@ def test_position_noise_perturbs_the_states_only(spiral):
 
 
 @pytest.mark.parametrize(
-    "name", ["nominal_weight", "position_noise", "shape_weight", "warp_weight"]
+    "name",
+    ["nominal_weight", "position_noise", "noise_correction", "shape_weight", "warp_weight"],
 )
 @pytest.mark.parametrize("value", [-0.1, float("nan"), float("inf")])
 def test_loss_weights_must_be_finite_and_non_negative(name, value):
@@ -300,3 +301,41 @@ def test_warm_up_is_long_enough_for_short_fits(steps):
     assert peak == expected - 1 and rates[peak] == pytest.approx(config.lr)
     assert all(a < b for a, b in zip(rates[:peak], rates[1 : peak + 1]))
     assert all(a >= b for a, b in zip(rates[peak:], rates[peak + 1 :]))
+
+
+def test_the_part_of_an_offset_across_the_direction_of_travel():
+    offsets = torch.tensor([[1.0, 1.0], [3.0, -2.0], [0.5, 0.25]], dtype=torch.float64)
+    velocities = torch.tensor([[2.0, 0.0], [0.0, -5.0], [0.0, 0.0]], dtype=torch.float64)
+    across = train_module._across(offsets, velocities)
+    # Along x, along y, and all of the offset where the velocity is 0 (no direction).
+    expected = torch.tensor([[0.0, 1.0], [3.0, 0.0], [0.5, 0.25]], dtype=torch.float64)
+    torch.testing.assert_close(across, expected)
+
+
+def test_corrective_noise_trains_noisy_states_back_towards_the_path(spiral):
+    # GIVEN the full batch of training samples and position noise, with and without correction
+    policy = make_policy(spiral, seed=0)
+    samples = train_module.make_samples(spiral, policy.normalization, no_split(spiral), window=0)
+    samples = samples.to(torch.float64)
+    plain = TrainConfig(batch_size=0, position_noise=0.05, seed=0)
+    corrected = dataclasses.replace(plain, noise_correction=4.0)
+    draws = [
+        train_module._draw_step(policy, samples, config, torch.Generator().manual_seed(3))
+        for config in (plain, corrected)
+    ]
+    # THEN the states are the same noisy states, and the corrected velocities add -k times
+    # the noise across the demonstrated direction: none along it
+    torch.testing.assert_close(draws[0].positions, draws[1].positions, rtol=0, atol=0)
+    torch.testing.assert_close(draws[0].velocities, samples.velocities, rtol=0, atol=0)
+    noise = draws[1].positions - samples.positions
+    change = draws[1].velocities - samples.velocities
+    speed = samples.velocities.norm(dim=-1, keepdim=True)
+    moving = speed[:, 0] > 0
+    direction = samples.velocities[moving] / speed[moving]
+    across = noise[moving] - (noise[moving] * direction).sum(-1, keepdim=True) * direction
+    torch.testing.assert_close(change[moving], -4.0 * across)
+    assert (change[moving] * direction).sum(-1).abs().max() < 1e-12
+    # Where the demonstration rests there is no direction: the whole offset is corrected.
+    assert (~moving).any()
+    torch.testing.assert_close(change[~moving], -4.0 * noise[~moving])
+    assert change.norm(dim=-1).mean() > 0.05

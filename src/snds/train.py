@@ -57,6 +57,11 @@ class TrainConfig:
             every step (model coordinates, where the data span about [-1, 1]); the
             velocities stay as demonstrated. It smooths the fit where demonstrations run close
             together at different speeds (0: off; SE(3) pose policies train without it).
+        noise_correction: A gain k per unit of model time: a state moved by the position
+            noise :math:`\delta` is trained towards :math:`v - k \delta_\perp`, with
+            :math:`\delta_\perp` the part of :math:`\delta` across the demonstrated
+            direction of travel, so that the field pulls states back onto the demonstrated
+            path (0: the velocities as demonstrated).
         shape_weight: Weight of the penalty :math:`\operatorname{Var}_x \log(V(x) / |x|^2)`
             over 256 random states, uniform in :math:`[-2, 2]^n` (model coordinates): it
             keeps V's sublevel sets round where the data do not ask otherwise, against stiff
@@ -88,6 +93,7 @@ class TrainConfig:
     velocity_weight: float = 1.0
     nominal_weight: float = 0.01
     position_noise: float = 0.0015
+    noise_correction: float = 0.0
     shape_weight: float = 0.0
     warp_weight: float = 0.001
     penalty_every: int = 4
@@ -115,7 +121,13 @@ class TrainConfig:
                 f"window and batch sizes must be >= 0, got window {self.window}, batch_size "
                 f"{self.batch_size}, window_batch_size {self.window_batch_size}"
             )
-        for name in ("nominal_weight", "position_noise", "shape_weight", "warp_weight"):
+        for name in (
+            "nominal_weight",
+            "position_noise",
+            "noise_correction",
+            "shape_weight",
+            "warp_weight",
+        ):
             weight = getattr(self, name)
             if not (weight >= 0 and math.isfinite(weight)):
                 raise ConfigError(f"{name} must be a number >= 0, got {weight}")
@@ -590,7 +602,10 @@ def _draw_step(
     if index is not None:
         x, v = x[index], v[index]
     if config.position_noise:
-        x = x + config.position_noise * torch.randn(x.shape, generator=generator).to(x)
+        noise = config.position_noise * torch.randn(x.shape, generator=generator).to(x)
+        x = x + noise
+        if config.noise_correction:
+            v = v - config.noise_correction * _across(noise, v)
     inputs = _StepInputs(positions=x, velocities=v)
     if config.window and len(samples.window_starts):
         index = _batch(
@@ -612,6 +627,14 @@ def _draw_step(
     if config.warp_weight and _warp_of(policy) is not None and policy.stable:
         inputs = replace(inputs, warp_draws=_warp_draws(x.shape[-1], generator, param))
     return inputs
+
+
+def _across(offset: torch.Tensor, velocity: torch.Tensor) -> torch.Tensor:
+    """The part of offsets (B, n) across the directions of travel (B, n); all of an offset
+    where the velocity is 0."""
+    speed = velocity.norm(dim=-1, keepdim=True)
+    direction = velocity / torch.where(speed > 0, speed, 1.0)
+    return offset - (offset * direction).sum(-1, keepdim=True) * direction
 
 
 def _step_loss(policy: StablePolicy, config: TrainConfig, inputs: _StepInputs) -> torch.Tensor:
