@@ -61,7 +61,7 @@ class TrainConfig:
             noise :math:`\delta` is trained towards :math:`v - k \delta_\perp`, with
             :math:`\delta_\perp` the part of :math:`\delta` across the demonstrated
             direction of travel, so that the field pulls states back onto the demonstrated
-            path (0: the velocities as demonstrated).
+            path (0: the velocities as demonstrated; no effect without position noise).
         shape_weight: Weight of the penalty :math:`\operatorname{Var}_x \log(V(x) / |x|^2)`
             over 256 random states, uniform in :math:`[-2, 2]^n` (model coordinates): it
             keeps V's sublevel sets round where the data do not ask otherwise, against stiff
@@ -93,7 +93,7 @@ class TrainConfig:
     velocity_weight: float = 1.0
     nominal_weight: float = 0.01
     position_noise: float = 0.0015
-    noise_correction: float = 0.0
+    noise_correction: float = 15.0
     shape_weight: float = 0.0
     warp_weight: float = 0.001
     penalty_every: int = 4

@@ -72,6 +72,14 @@ def register(commands: argparse._SubParsersAction) -> None:
         f"{POSE.train.position_noise:g} for SE(3) pose models; 0: off)",
     )
     parser.add_argument(
+        "--noise-correction",
+        type=float,
+        default=None,
+        help="gain k (per unit of model time) that trains a state moved by the position noise "
+        "back towards the demonstrated path: velocity minus k times the noise across the "
+        f"direction of travel (default {DEFAULT.train.noise_correction:g}; 0: off)",
+    )
+    parser.add_argument(
         "--shape-weight",
         type=float,
         default=None,
@@ -193,6 +201,9 @@ def _train_settings(args: argparse.Namespace, base: TrainConfig) -> tuple[dict, 
         velocity_shape=args.velocity_loss,
         nominal_weight=args.nominal_weight,
         position_noise=base.position_noise if args.position_noise is None else args.position_noise,
+        noise_correction=(
+            base.noise_correction if args.noise_correction is None else args.noise_correction
+        ),
         shape_weight=base.shape_weight if args.shape_weight is None else args.shape_weight,
         warp_weight=args.warp_weight,
         seed=args.seed,
