@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import platform
 from pathlib import Path
 
 README = Path(__file__).resolve().parent / "README.md"
@@ -20,3 +21,14 @@ def write_readme_section(tag: str, body: str, readme: Path = README) -> None:
     tmp = readme.with_suffix(".md.tmp")
     tmp.write_text(text)
     os.replace(tmp, readme)
+
+
+def cpu_name() -> str:
+    """The processor's model name (from /proc/cpuinfo where there is one)."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown processor"

@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 import onnxruntime
 import torch
-from _readme import write_readme_section
+from _readme import cpu_name, write_readme_section
 
 from snds import export
 from snds.models import load_model
@@ -223,7 +223,7 @@ def main() -> None:
     meta = {
         "date": datetime.date.today().isoformat(),
         "machine": f"{platform.machine()}, {os.cpu_count()} cores, {platform.platform()}",
-        "processor": _cpu_name(),
+        "processor": cpu_name(),
         "torch": torch.__version__,
         "onnxruntime": onnxruntime.__version__,
         "model": str(args.model),
@@ -254,16 +254,6 @@ def main() -> None:
             "through buffers bound to the session, a batch split across the threads."
         )
         write_readme_section(name, header + "\n\n" + body)
-
-
-def _cpu_name() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown processor"
 
 
 if __name__ == "__main__":

@@ -28,7 +28,7 @@ import sys
 import time
 from pathlib import Path
 
-from _readme import write_readme_section
+from _readme import cpu_name, write_readme_section
 
 from snds.benchmark import SweepSettings, Task, finished_rows, make_tasks, run_sweep
 from snds.io import atomic_write
@@ -58,16 +58,6 @@ FIELDS = (
     "converged_fraction",
     "train_cpu_seconds",
 )
-
-
-def _cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def score(rows: list[dict], out: Path) -> tuple[list[dict], list[list[Panel | None]]]:
@@ -174,7 +164,7 @@ def main() -> None:
         "commit": commit,
         "command": command.strip(),
         "machine": f"{platform.machine()}, {os.cpu_count()} cores, {platform.platform()}",
-        "cpu": _cpu_model(),
+        "cpu": cpu_name(),
         "config": {
             "motions": args.motions,
             "methods": args.methods,
