@@ -93,7 +93,7 @@ class TrainConfig:
     velocity_weight: float = 1.0
     nominal_weight: float = 0.01
     position_noise: float = 0.0015
-    noise_correction: float = 10.0
+    noise_correction: float = 0.0
     shape_weight: float = 0.0
     warp_weight: float = 0.001
     penalty_every: int = 4
