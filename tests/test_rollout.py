@@ -6,8 +6,6 @@ from snds.rollout import converged_at, guarded_rollout, guarded_step, policy_gua
 
 from conftest import linear_policy, make_policy
 
-SEED = torch.Generator().manual_seed(0)
-
 
 def linear(x):
     return -x
@@ -106,7 +104,8 @@ def test_a_guarded_step_from_given_first_candidates_is_the_same_step(spiral):
         for p in policy.nominal_net.parameters():
             p.mul_(20.0)
     lyapunov, rate = policy_guard(policy)
-    x = 3 * spiral.extent() * torch.randn(256, 2, dtype=torch.float64, generator=SEED)
+    generator = torch.Generator().manual_seed(0)
+    x = 3 * spiral.extent() * torch.randn(256, 2, dtype=torch.float64, generator=generator)
     # Half the states with a step short enough to keep, half with one the guard shortens.
     dt = torch.where(torch.arange(256) % 2 == 0, 1e-6, 0.5).double()
     candidate = x + dt.unsqueeze(-1) * policy(x)

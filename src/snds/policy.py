@@ -274,8 +274,13 @@ class Policy(nn.Module, ABC):
         at the state it reaches (see :func:`snds.rollout.policy_guard`). Only for a policy
         with a Lyapunov function."""
         z = self.to_model(x)
-        terms = self.field_terms(z)
-        return self.velocity_to_user(z, terms.field), terms.value
+        field, value = self._field_and_value(z)
+        return self.velocity_to_user(z, field), value
+
+    def _field_and_value(self, z: Tensor) -> tuple[Tensor, Tensor]:
+        """The field and V at model states z, without V's gradient where the field does not
+        need it (two passes here; one for a policy whose field is made from V)."""
+        return self.field(z), self.lyapunov(z)
 
     def decay(self, v: Tensor, x: Tensor) -> Tensor:
         """The guaranteed decrease rate a(x) >= 0 of V, shape (*,); 0 by default.
@@ -468,6 +473,10 @@ class StablePolicy(Policy):
             return FieldTerms(f, None, None, None)
         v, grad_v = self.lyapunov.value_and_grad(x)
         return FieldTerms(project(f, grad_v, self.decay(v, x), self.config.rectifier), f, v, grad_v)
+
+    def _field_and_value(self, z: Tensor) -> tuple[Tensor, Tensor]:
+        terms = self.field_terms(z)
+        return terms.field, terms.value
 
 
 def float64_copy(policy: Policy) -> Policy:

@@ -55,8 +55,9 @@ class TrainConfig:
             guarantee is pi's and does not depend on it (0: off, the paper's loss).
         position_noise: Standard deviation of Gaussian noise added to the training states at
             every step (model coordinates, where the data span about [-1, 1]); the
-            velocities stay as demonstrated. It smooths the fit where demonstrations run close
-            together at different speeds (0: off; SE(3) pose policies train without it).
+            velocities stay as demonstrated unless ``noise_correction`` is on. It smooths
+            the fit where demonstrations run close together at different speeds (0: off;
+            SE(3) pose policies train without it).
         noise_correction: A gain k per unit of model time: a state moved by the position
             noise :math:`\delta` is trained towards :math:`v - k \delta_\perp`, with
             :math:`\delta_\perp` the part of :math:`\delta` across the demonstrated
