@@ -6,7 +6,7 @@ Three sweeps, each resumable (a rerun skips the runs already in its folder):
 * ``paper8-demos1``: the same from one demonstration (sample efficiency);
 * ``multi``: Multi_Models_1-4, motions made of several distinct shapes (its Fig. 6).
 
-    python benchmarks/sweeps.py                           # snds,bc x 10 seeds, into README
+    python benchmarks/sweeps.py                    # all five methods x 10 seeds, into README
     python benchmarks/sweeps.py --methods snds,bc,lpvds --seeds 3 --only paper8
 
 Runs go to ``runs/sweeps/<name>/`` (models included); each sweep's ``results.csv``,
@@ -15,15 +15,26 @@ Runs go to ``runs/sweeps/<name>/`` (models included); each sweep's ``results.csv
 markers of ``benchmarks/README.md``. A sweep whose ``runs/`` folder is gone (a fresh clone,
 another machine) starts from the committed ``results.jsonl``: its finished rows are not run
 again, though their models are not there for the streamline figure.
+
+A sweep's rows come from one commit: ``provenance.json`` beside them records it (with the
+wall time and where the runs ran), and resuming from another commit, or from a tree with
+uncommitted changes under ``src/``, is refused. ``--scheduler`` runs on a Dask cluster::
+
+    dask scheduler --host 127.0.0.1 --port 8786 &
+    dask worker tcp://127.0.0.1:8786 --nworkers 2 --nthreads 1 &
+    python benchmarks/sweeps.py --methods snds,bc,sdsef,lpvds,seds --scheduler tcp://127.0.0.1:8786
 """
 
 from __future__ import annotations
 
 import argparse
 import datetime
+import json
 import os
 import platform
 import shutil
+import subprocess
+import time
 from pathlib import Path
 
 from _readme import write_readme_section
@@ -46,16 +57,52 @@ SWEEPS: dict[str, tuple[str, int | None]] = {
     "paper8-demos1": ("paper8", 1),
     "multi": ("multi", None),
 }
+PROVENANCE = "provenance.json"
 COPIED = (
     "results.csv",
     "results.jsonl",
     "sweep.json",
+    PROVENANCE,
     "summary.md",
     "mse_violin.png",
     "dtw_violin.png",
     "train_time.png",
     "converged.png",
 )
+
+
+def commit() -> str:
+    """The checked-out commit; refuses a tree whose ``src/`` differs from it."""
+    root = HERE.parent
+
+    def git(*argv: str) -> str:
+        return subprocess.run(
+            ["git", *argv], cwd=root, check=True, capture_output=True, text=True
+        ).stdout.strip()
+
+    if git("status", "--porcelain", "--", "src"):
+        raise SystemExit("src/ has uncommitted changes: a sweep's rows must come from one commit")
+    return git("rev-parse", "HEAD")
+
+
+def provenance(out: Path, args: argparse.Namespace) -> dict:
+    """The sweep's record in ``out``: its commit (a rerun from another one is refused)."""
+    path = out / PROVENANCE
+    record = json.loads(path.read_text()) if path.is_file() else {}
+    head = commit()
+    if record.get("commit", head) != head:
+        raise SystemExit(
+            f"{out} holds rows from commit {record['commit'][:10]}, this is {head[:10]}: "
+            "delete the folder (and its copy under benchmarks/results/sweeps) to rerun"
+        )
+    record.update(
+        commit=head,
+        where=f"Dask at {args.scheduler}"
+        if args.scheduler
+        else f"{args.jobs or os.cpu_count()} local processes",
+        machine=f"{platform.machine()}, {os.cpu_count()} cores, {platform.platform()}",
+    )
+    return record
 
 
 def run(name: str, args: argparse.Namespace, settings: SweepSettings) -> str:
@@ -66,14 +113,23 @@ def run(name: str, args: argparse.Namespace, settings: SweepSettings) -> str:
     )
     out = args.runs / name
     copy = HERE / "results" / "sweeps" / name
-    if not (out / "results.jsonl").exists() and (copy / "results.jsonl").exists():
+    # Committed rows are resumed only with the record of the commit they come from.
+    if not (out / "results.jsonl").exists() and (copy / PROVENANCE).exists():
         out.mkdir(parents=True, exist_ok=True)
-        for file in ("results.jsonl", "sweep.json"):
+        for file in ("results.jsonl", "sweep.json", PROVENANCE):
             shutil.copyfile(copy / file, out / file)
+    out.mkdir(parents=True, exist_ok=True)
+    record = provenance(out, args)
     if args.done_only:
         done = finished_rows(out)
         tasks = [task for task in tasks if task.key in done]
-    rows = run_sweep(tasks, out=out, settings=settings, jobs=args.jobs)
+    start = time.perf_counter()
+    pending = len(tasks) - len(finished_rows(out).keys() & {task.key for task in tasks})
+    rows = run_sweep(tasks, out=out, settings=settings, jobs=args.jobs, scheduler=args.scheduler)
+    if pending:
+        record["wall_seconds"] = record.get("wall_seconds", 0.0) + time.perf_counter() - start
+        record["runs"] = len(rows)
+    (out / PROVENANCE).write_text(json.dumps(record, indent=1) + "\n")
     plot_benchmark(rows, out)
     copy.mkdir(parents=True, exist_ok=True)
     files = COPIED + (("streamlines.png",) if args.streamlines else ())
@@ -89,8 +145,14 @@ def run(name: str, args: argparse.Namespace, settings: SweepSettings) -> str:
         if args.done_only
         else (f"{args.seeds} seeds")
     )
+    wall = record.get("wall_seconds")
+    where = (
+        f"Commit `{record['commit'][:10]}`; {len(rows)} runs on {record['where']}"
+        + (f" in {wall / 60:.0f} min wall time" if wall else "")
+        + ".\n\n"
+    )
     return (
-        f"#### {name}: {motions}, {demos_text}, {seeds}\n\n"
+        f"#### {name}: {motions}, {demos_text}, {seeds}\n\n{where}"
         f"`python benchmarks/sweeps.py --only {name}` (or `snds benchmark --methods "
         f"{args.methods} --motions {motions}"
         + (f" --demos {demos}" if demos else "")
@@ -102,12 +164,13 @@ def run(name: str, args: argparse.Namespace, settings: SweepSettings) -> str:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--methods", default="snds,bc")
+    parser.add_argument("--methods", default="snds,bc,sdsef,lpvds,seds")
     parser.add_argument("--seeds", type=int, default=10)
     parser.add_argument("--only", nargs="+", choices=list(SWEEPS), default=list(SWEEPS))
     parser.add_argument("--rollouts", type=int, default=300, help="per run's stability check")
     parser.add_argument("--samples", type=int, default=20_000, help="per run's decrease check")
     parser.add_argument("--jobs", type=int, default=None, help="local processes (all cores)")
+    parser.add_argument("--scheduler", default=None, help="Dask scheduler, e.g. tcp://host:8786")
     parser.add_argument("--runs", type=Path, default=Path("runs/sweeps"))
     parser.add_argument("--streamlines", action="store_true", help="also copy streamlines.png")
     parser.add_argument("--no-readme", action="store_true")
