@@ -16,9 +16,9 @@ markers of ``benchmarks/README.md``. A sweep whose ``runs/`` folder is gone (a f
 another machine) starts from the committed ``results.jsonl``: its finished rows are not run
 again, though their models are not there for the streamline figure.
 
-A sweep's rows come from one commit: ``provenance.json`` beside them records it (with the
-wall time and where the runs ran), and resuming from another commit, or from a tree with
-uncommitted changes under ``src/``, is refused. ``--scheduler`` runs on a Dask cluster::
+A sweep's rows come from one commit: ``provenance.json`` beside them records it (with its
+``src/`` tree, the wall time and where the runs ran), and resuming with another ``src/``, or
+with uncommitted changes there, is refused. ``--scheduler`` runs on a Dask cluster::
 
     dask scheduler --host 127.0.0.1 --port 8786 &
     dask worker tcp://127.0.0.1:8786 --nworkers 2 --nthreads 1 &
@@ -71,8 +71,8 @@ COPIED = (
 )
 
 
-def commit() -> str:
-    """The checked-out commit; refuses a tree whose ``src/`` differs from it."""
+def commit() -> tuple[str, str]:
+    """The checked-out commit and its ``src/`` tree; refuses uncommitted changes there."""
     root = HERE.parent
 
     def git(*argv: str) -> str:
@@ -82,21 +82,24 @@ def commit() -> str:
 
     if git("status", "--porcelain", "--", "src"):
         raise SystemExit("src/ has uncommitted changes: a sweep's rows must come from one commit")
-    return git("rev-parse", "HEAD")
+    return git("rev-parse", "HEAD"), git("rev-parse", "HEAD:src")
 
 
 def provenance(out: Path, args: argparse.Namespace) -> dict:
-    """The sweep's record in ``out``: its commit (a rerun from another one is refused)."""
+    """The sweep's record in ``out``: the commit its runs started from and that commit's
+    ``src/`` tree; resuming with another ``src/`` is refused."""
     path = out / PROVENANCE
     record = json.loads(path.read_text()) if path.is_file() else {}
-    head = commit()
-    if record.get("commit", head) != head:
+    head, tree = commit()
+    if record.get("src_tree", tree) != tree:
         raise SystemExit(
-            f"{out} holds rows from commit {record['commit'][:10]}, this is {head[:10]}: "
-            "delete the folder (and its copy under benchmarks/results/sweeps) to rerun"
+            f"{out} holds rows from commit {record['commit'][:10]}, whose src/ differs from "
+            "this one's: delete the folder (and its copy under benchmarks/results/sweeps) "
+            "to rerun"
         )
+    record.setdefault("commit", head)
     record.update(
-        commit=head,
+        src_tree=tree,
         where=f"Dask at {args.scheduler}"
         if args.scheduler
         else f"{args.jobs or os.cpu_count()} local processes",
