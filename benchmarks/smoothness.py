@@ -28,7 +28,7 @@ import sys
 import time
 from pathlib import Path
 
-from _readme import cpu_name, write_readme_section
+from _readme import cpu_name, shrink_png, write_readme_section
 
 from snds.benchmark import SweepSettings, Task, finished_rows, make_tasks, run_sweep
 from snds.io import atomic_write
@@ -154,6 +154,7 @@ def main() -> None:
     rows = run_sweep(tasks, out=args.runs, settings=settings, jobs=1, progress=False)
     scored, grid = score(rows, args.runs)
     figure = plot_panels(grid, RESULTS / "smoothness.png")
+    shrink_png(figure)
     wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
     commit = subprocess.run(
         ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=HERE

@@ -37,7 +37,7 @@ import subprocess
 import time
 from pathlib import Path
 
-from _readme import write_readme_section
+from _readme import shrink_png, write_readme_section
 
 from snds.benchmark import (
     SweepSettings,
@@ -139,6 +139,8 @@ def run(name: str, args: argparse.Namespace, settings: SweepSettings) -> str:
     for file in files:
         if (out / file).exists():
             shutil.copyfile(out / file, copy / file)
+            if file == "streamlines.png":
+                shrink_png(copy / file)
     figures = " ".join(
         f"![{file}](results/sweeps/{name}/{file})" for file in files if file.endswith(".png")
     )
