@@ -52,10 +52,20 @@ def shifted_spiral() -> Demonstrations:
     return Demonstrations(moved, base.target + shift, "spiral")
 
 
+def _anchored(policy, demos: Demonstrations):
+    """The policy with its anchors on the demonstrations, as a fit places them, so that the
+    data kernel of its decay rate is in the graph."""
+    states = np.concatenate([d.positions for d in demos])
+    with torch.no_grad():
+        policy.set_anchors(policy.to_model(torch.as_tensor(states).to(policy.center.dtype)))
+    return policy
+
+
 @pytest.fixture(scope="module")
 def policy():
     """An untrained float32 stable policy: the export must not depend on training."""
-    return make_policy(shifted_spiral(), config=SMALL, seed=3, dtype=torch.float32).eval()
+    demos = shifted_spiral()
+    return _anchored(make_policy(demos, config=SMALL, seed=3, dtype=torch.float32), demos).eval()
 
 
 @pytest.fixture(scope="module")
@@ -437,7 +447,7 @@ def _default_policy(dim: int = 2):
     """The default architecture (warped V, 6 coupling layers), its warp and V moved away from
     their initial values as training would."""
     demos = shifted_spiral() if dim == 2 else spiral_demos(dim=dim)
-    policy = make_policy(demos, config=PolicyConfig(), seed=2).eval()
+    policy = _anchored(make_policy(demos, config=PolicyConfig(), seed=2), demos).eval()
     with torch.no_grad():
         for p in policy.lyapunov.warp.parameters():
             p.add_(0.05 * torch.randn_like(p))

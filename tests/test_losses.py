@@ -2,7 +2,7 @@ import numpy as np
 import torch
 
 from snds.data import Demonstration, Demonstrations, Normalization, no_split, split_samples
-from snds.losses import make_samples, srvf, velocity_loss, window_loss
+from snds.losses import align_loss, make_samples, srvf, velocity_loss, window_loss
 
 
 def _line() -> Demonstrations:
@@ -44,3 +44,23 @@ def test_velocity_loss_values():
     assert velocity_loss(pred, true, "mse").item() == 0.5
     q = srvf(torch.tensor([[4.0, 0.0]]), eps=0.0)
     torch.testing.assert_close(q, torch.tensor([[2.0, 0.0]]))
+
+
+def test_align_loss_values_by_hand():
+    # -grad V along the velocity (cos 1), across it (cos 0) and against it (cos -1), at
+    # speeds 2, 1 and 1: weights 1, 0.5, 0.5; hinge at c = 0.5: 0, 0.5, 1.5.
+    grad = torch.tensor([[-3.0, 0.0], [0.0, 1.0], [1.0, 0.0]], dtype=torch.float64)
+    velocity = torch.tensor([[2.0, 0.0], [1.0, 0.0], [1.0, 0.0]], dtype=torch.float64)
+    expected = (1.0 * 0.0 + 0.5 * 0.5 + 0.5 * 1.5) / 3
+    assert abs(float(align_loss(grad, velocity, 0.5)) - expected) < 1e-12
+    # Scaling grad V changes nothing; c = -1 never binds.
+    assert abs(float(align_loss(7.0 * grad, velocity, 0.5)) - expected) < 1e-12
+    assert float(align_loss(grad, velocity, -1.0)) == 0.0
+
+
+def test_align_loss_has_a_finite_gradient_where_grad_v_vanishes():
+    # At the target grad V = 0: the term's gradient must be finite there (0 / 0 otherwise).
+    grad = torch.zeros(3, 2, dtype=torch.float64, requires_grad=True)
+    velocity = torch.tensor([[1.0, 0.0], [0.0, 0.0], [0.5, 0.5]], dtype=torch.float64)
+    align_loss(grad, velocity, 0.5).backward()
+    assert torch.isfinite(grad.grad).all()

@@ -183,3 +183,50 @@ def test_field_terms_are_the_field_and_v_of_one_pass(spiral, warp_layers):
     torch.testing.assert_close(policy.lyapunov(x), value, rtol=1e-13, atol=0)
     for got, wanted in zip(terms, (policy.field(x), policy.nominal(x), value, grad)):
         torch.testing.assert_close(got, wanted, rtol=1e-13, atol=0)
+
+
+def test_data_kernel_lowers_the_rate_on_the_data_only_and_the_decrease_holds(spiral, tmp_path):
+    from snds.models import load_model, save_model
+
+    # GIVEN a policy whose anchors sit at (0.5, 0) and (-0.5, 0) (model coordinates)
+    config = dataclasses.replace(
+        SMALL, decay_rate=0.5, data_rate=0.02, data_radius=0.1, anchors=2, decay_near=0.0
+    )
+    policy = _scrambled(make_policy(spiral, config, seed=5))
+    policy.set_anchors(torch.tensor([[0.5, 0.0], [0.0, 0.3], [-0.5, 0.0]], dtype=torch.float64))
+    torch.testing.assert_close(policy.anchors, torch.tensor([[0.5, 0.0], [-0.5, 0.0]]).double())
+    # THEN by hand: rate 0.02 on an anchor, 0.5 - 0.48 exp(-0.5) at 0.1 from one, 0.5 far
+    x = torch.tensor([[0.5, 0.0], [-0.5, 0.1], [0.0, 0.7], [3.0, 0.0]], dtype=torch.float64)
+    v = torch.ones(4, dtype=torch.float64)
+    far = 0.5 + 2.0 * 2.0 - 0.48 * np.exp(-0.5 * 2.5**2 / 0.01)
+    expected = torch.tensor([0.02, 0.5 - 0.48 * np.exp(-0.5), 0.5 - 0.48 * np.exp(-37.0), far])
+    torch.testing.assert_close(policy.decay(v, x), expected.double())
+    # and the projection honours it near the anchors and far away, with a rate of at least
+    # min(rho, rho_data) everywhere
+    x = torch.cat([0.5 + 0.1 * torch.randn(5000, 2), 5 * torch.randn(5000, 2)]).double()
+    v, grad_v = policy.lyapunov.value_and_grad(x)
+    lhs = (grad_v * policy.field(x)).sum(-1)
+    slack = 1e-9 * (grad_v.norm(dim=-1) * policy.nominal(x).norm(dim=-1) + v)
+    assert (lhs <= -policy.decay(v, x) + slack).all()
+    assert (policy.decay(v, x) >= 0.02 * v * (1 - 1e-12)).all()
+    # and the anchors survive a save / load round trip
+    save_model(policy, tmp_path / "m")
+    loaded, _ = load_model(tmp_path / "m")
+    torch.testing.assert_close(loaded.anchors.double(), policy.anchors)
+    torch.testing.assert_close(loaded.decay(v, x).double(), policy.decay(v, x))
+
+
+def test_fit_places_the_anchors_on_the_training_states(spiral):
+    from snds.data import split_samples
+    from snds.train import TrainConfig, fit
+
+    policy = make_policy(spiral, dataclasses.replace(SMALL, anchors=16), seed=0)
+    split = split_samples(spiral, test_fraction=0.2, seed=0)
+    fit(policy, spiral, split, TrainConfig(steps=2, seed=0), progress=False)
+    train = np.concatenate([d.positions[m] for d, m in zip(spiral, split.train)])
+    model = policy.normalization.positions_to_model(train)
+    anchors = policy.anchors.numpy()
+    # every anchor is a training state, first and last included
+    distances = np.linalg.norm(anchors[:, None] - model[None], axis=-1).min(axis=1)
+    assert distances.max() < 1e-6
+    np.testing.assert_allclose(anchors[[0, -1]], model[[0, -1]], atol=1e-6)

@@ -121,6 +121,7 @@ def fit_many(
         samples = make_samples(demo, policy.normalization, split, window=config.window).to(
             dtype, config.device
         )
+        policy.set_anchors(samples.positions)
         generator = torch.Generator().manual_seed(config.seed)
         state = _State(good=copy.deepcopy(policy.state_dict()))
         fits.append(_Fit(index, policy, config, samples, generator, _adam(policy, config), state))

@@ -292,7 +292,7 @@ class _FusedStable(torch.nn.Module):
             if k > 0:
                 buffer(f"back_prev{k}", (1 - a) * weights[k - 1])
         # The decay rate a(x) / V = rho + rho_far (|x| - 1)_+ + rho_near (1 - |x| / r)_+, times
-        # L/T, as a two-layer network of |x|.
+        # L/T, as a two-layer network of |x| (and the data kernel below).
         rates = [(1.0, -1.0, config.decay_far)]
         if config.decay_near:
             rates.append((-1.0 / config.near_radius, 1.0, config.decay_near))
@@ -301,6 +301,15 @@ class _FusedStable(torch.nn.Module):
         buffer("rate_bias", rates[:, 1])
         buffer("rate_out", speed * rates[:, 2:])
         buffer("rate_base", torch.tensor([speed * config.decay_rate], dtype=torch.float64))
+        # On the data, rho gives way to rho_data by the kernel exp(-d^2 / (2 r^2)) of the
+        # distance to the nearest anchor (see PolicyConfig.data_rate), times L/T.
+        self.anchored = exact.anchors is not None
+        if self.anchored:
+            anchors = exact.anchors.to(torch.float64)
+            buffer("anchors_t", anchors.T)
+            buffer("anchors_sq", (anchors * anchors).sum(-1))
+            self.inverse_width = 1.0 / (2.0 * config.data_radius**2)
+            self.data_gain = speed * (config.decay_rate - config.data_rate)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         z = torch.cat([(x - self.center) / self.length, self.zero_row])  # the target last
@@ -369,6 +378,12 @@ class _FusedStable(torch.nn.Module):
             torch.relu(torch.addmm(self.rate_bias, radius, self.rate_in)),
             self.rate_out,
         )
+        if self.anchored:
+            squared = (z * z).sum(-1, keepdim=True) - 2.0 * (z @ self.anchors_t)
+            nearest = torch.clamp_min(
+                torch.amin(squared + self.anchors_sq, dim=-1, keepdim=True), 0.0
+            )
+            rate = rate - self.data_gain * torch.exp(-self.inverse_width * nearest)
         norm2 = (grad_v * grad_v).sum(-1, keepdim=True)
         excess = torch.relu((grad_v * field).sum(-1, keepdim=True) + value * rate)
         safe = torch.where(norm2 > 0, norm2, 1.0)

@@ -1,4 +1,5 @@
-r"""The imitation loss: velocity matching plus a short multi-step Euler window (paper eq. 5)."""
+r"""The imitation loss: velocity matching plus a short multi-step Euler window (paper eq. 5),
+and the alignment of V's descent with the direction of travel."""
 
 from __future__ import annotations
 
@@ -37,7 +38,11 @@ class Samples:
 
 
 def make_samples(
-    demos: Demonstrations, normalization: Normalization, split: Split, *, window: int
+    demos: Demonstrations,
+    normalization: Normalization,
+    split: Split,
+    *,
+    window: int,
 ) -> Samples:
     """Collects the training samples and the multi-step windows that lie wholly in training.
 
@@ -122,3 +127,26 @@ def window_loss(
         error = ((x - targets[:, i]) ** 2).sum(-1) / elapsed**2
         total = total + 2.0 ** -(i + 1) * error.mean()
     return total
+
+
+def align_loss(grad: Tensor, velocity: Tensor, cosine: float) -> Tensor:
+    r"""Speed-weighted hinge on V's descent direction against the direction of travel:
+    :math:`\mathbb{E}\, w_s (c - \cos(-\nabla V(x_s), \dot x_s))_+` with
+    :math:`w_s = |\dot x_s| / \max |\dot x|` over the batch.
+
+    Where the demonstrations travel down V within the angle :math:`\arccos c`, the decrease
+    margin that the projection enforces pushes a state along the demonstrated path, not
+    across it, and a slow (resting) stretch of a demonstration neither drifts nor stalls.
+
+    Arguments:
+        grad: :math:`\nabla V` at the samples, shape (B, n).
+        velocity: The demonstrated velocities, shape (B, n).
+        cosine: c in [-1, 1].
+    """
+    speed = velocity.norm(dim=-1)
+    # Through squared norms, clamped: grad V is 0 at the target, where a norm's derivative
+    # would be 0 / 0.
+    squared = ((grad * grad).sum(-1) * speed**2).clamp_min(1e-24)
+    cos = -(grad * velocity).sum(-1) / torch.sqrt(squared)
+    weight = speed / speed.max().clamp_min(1e-12)
+    return (weight * torch.relu(cosine - cos)).mean()

@@ -26,6 +26,11 @@ from snds.spaces import Euclidean, Space
 DEFAULT_WARP_LAYERS = 6
 
 
+#: Where anchors sit before :meth:`StablePolicy.set_anchors`: far enough (model coordinates)
+#: that the kernel is exactly 0, near enough that its square stays finite.
+_NO_ANCHOR = 1e3
+
+
 def _relu(u: Tensor) -> Tensor:
     return F.relu(u)
 
@@ -90,6 +95,17 @@ class PolicyConfig:
             |x| ~ exp(-rho t / 2); the default binds only where the data say nothing
             (docs/design.md; 0: off).
         near_radius: Radius of that region, in model coordinates.
+        data_rate: rho_data, the decay rate that replaces rho on the demonstrations:
+            rho becomes rho (1 - k(x)) + rho_data k(x), with
+            k(x) = exp(-d(x)^2 / (2 data_radius^2)) and d(x) the distance from x to the
+            nearest of the policy's anchors, ``anchors`` training states spread along the
+            demonstrations (set by :func:`snds.train.fit`). A demonstration that starts or
+            lingers at rest then keeps its own slow pace instead of being pushed across its
+            path towards the target at rate rho, while states away from the data keep rho.
+            The rate stays at least min(rho, rho_data) everywhere, so the guarantee's
+            exponential decrease holds unchanged.
+        data_radius: The kernel's radius, in model coordinates.
+        anchors: Number of anchors (0: none; rho everywhere). Pose policies take none.
         warp_layers: Coupling layers of a learned diffeomorphism inside V (0: none, V convex;
             see :class:`~snds.nn.WarpedLyapunov`; needs n >= 2). None (the default) takes
             :data:`DEFAULT_WARP_LAYERS` for n >= 2 and 0 in 1-D, where a convex V fits every
@@ -114,6 +130,9 @@ class PolicyConfig:
     decay_far: float = 2.0
     decay_near: float = 2.0
     near_radius: float = 0.2
+    data_rate: float = 0.02
+    data_radius: float = 0.1
+    anchors: int = 256
     warp_layers: int | None = None
     warp_features: int = 64
     warp_scale: float = 1.0
@@ -122,8 +141,8 @@ class PolicyConfig:
 
     #: Fields added after models were first saved, with the value that reproduces those models
     #: (a model.json without the field predates it): the near-target decay and the warp were
-    #: off before.
-    BEFORE_ADDED: ClassVar[dict[str, Any]] = {"decay_near": 0.0, "warp_layers": 0}
+    #: off before, and so was the rate on the data (no anchors).
+    BEFORE_ADDED: ClassVar[dict[str, Any]] = {"decay_near": 0.0, "warp_layers": 0, "anchors": 0}
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "hidden", tuple(self.hidden))
@@ -136,6 +155,11 @@ class PolicyConfig:
             raise ConfigError(
                 f"need decay_near >= 0 and near_radius > 0, got {self.decay_near} and "
                 f"{self.near_radius}"
+            )
+        if not (self.data_rate >= 0 and self.data_radius > 0 and self.anchors >= 0):
+            raise ConfigError(
+                f"need data_rate >= 0, data_radius > 0 and anchors >= 0, got {self.data_rate}, "
+                f"{self.data_radius} and {self.anchors}"
             )
         layers = 0 if self.warp_layers is None else self.warp_layers
         if layers < 0 or self.warp_features < 1 or not self.warp_scale > 0:
@@ -291,6 +315,10 @@ class Policy(nn.Module, ABC):
         """
         return torch.zeros_like(v)
 
+    def set_anchors(self, positions: Tensor) -> None:
+        """Shows the policy its training states in model coordinates, shape (N, n), before a
+        fit (see :attr:`PolicyConfig.anchors`); a policy without anchors ignores them."""
+
     def to_model(self, x: Tensor) -> Tensor:
         """User states (*, space.dim) to model coordinates (*, n)."""
         return (x - self.center.to(x.dtype)) / self.length
@@ -422,6 +450,28 @@ class StablePolicy(Policy):
             )
             lyapunov = WarpedLyapunov(lyapunov, warp)
         self.lyapunov = lyapunov
+        # Until set_anchors, far from every state, so that k(x) = 0 and the rate is rho.
+        if config.anchors:
+            self.register_buffer("anchors", torch.full((config.anchors, dim), _NO_ANCHOR))
+        else:
+            self.anchors = None
+
+    def set_anchors(self, positions: Tensor) -> None:
+        """Places the anchors on ``config.anchors`` of the training states (model coordinates,
+        shape (N, n)), evenly spaced in their order, so along the demonstrations."""
+        if self.anchors is None or len(positions) == 0:
+            return
+        index = torch.linspace(0, len(positions) - 1, len(self.anchors)).round().long()
+        self.anchors.copy_(positions[index.to(positions.device)].detach())
+
+    def _data_kernel(self, x: Tensor) -> Tensor:
+        """k(x) = exp(-d(x)^2 / (2 r^2)), d(x) the distance to the nearest anchor, shape (*,)."""
+        anchors = self.anchors.to(x.dtype)
+        flat = x.reshape(-1, self.dim)
+        # |x - a|^2 = |x|^2 - 2 x.a + |a|^2: an (B, M) matrix without a (B, M, n) one.
+        squared = (flat * flat).sum(-1, keepdim=True) - 2.0 * flat @ anchors.T
+        nearest = (squared + (anchors * anchors).sum(-1)).min(dim=-1).values.clamp_min(0.0)
+        return torch.exp(-nearest / (2.0 * self.config.data_radius**2)).reshape(x.shape[:-1])
 
     @property
     def method(self) -> str:
@@ -442,7 +492,9 @@ class StablePolicy(Policy):
 
     def decay(self, v: Tensor, x: Tensor) -> Tensor:
         """The required decrease rate, shape (*,):
-        a(x) = V (rho + rho_far (|x| - 1)_+ + rho_near (1 - |x| / r_near)_+).
+        a(x) = V (rho (1 - k(x)) + rho_data k(x) + rho_far (|x| - 1)_+
+        + rho_near (1 - |x| / r_near)_+), with k(x) the data kernel of
+        :attr:`PolicyConfig.data_rate` (0 without anchors).
 
         Arguments:
             v: V at the states, shape (*,).
@@ -451,6 +503,8 @@ class StablePolicy(Policy):
         config = self.config
         radius = x.norm(dim=-1)
         rate = config.decay_rate + config.decay_far * (radius - 1.0).clamp_min(0.0)
+        if self.anchors is not None:
+            rate = rate - (config.decay_rate - config.data_rate) * self._data_kernel(x)
         if config.decay_near:
             rate = rate + config.decay_near * (1.0 - radius / config.near_radius).clamp_min(0.0)
         return v * rate

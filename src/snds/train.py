@@ -19,7 +19,14 @@ from tqdm.auto import tqdm
 from snds.data.demonstrations import Demonstrations, Split
 from snds.errors import CheckpointError, ConfigError, SNDSError
 from snds.io import atomic_write
-from snds.losses import VELOCITY_SHAPES, Samples, make_samples, velocity_loss, window_loss
+from snds.losses import (
+    VELOCITY_SHAPES,
+    Samples,
+    align_loss,
+    make_samples,
+    velocity_loss,
+    window_loss,
+)
 from snds.nn.flow import EuclideanizingFlow
 from snds.policy import Policy, StablePolicy
 
@@ -70,6 +77,12 @@ class TrainConfig:
         warp_weight: Weight of :func:`warp_penalty`, which keeps the Jacobian of a warped V's
             diffeomorphism near the identity off the data, against stiff fields (stable
             policies with a warp only; 0: off).
+        align_weight: Weight of :func:`snds.losses.align_loss`, which asks V to descend
+            along the demonstrated direction of travel (within ``arccos(align_cosine)``),
+            weighted by speed. The decrease margin then pushes a slow or resting stretch of a
+            demonstration along its path, not across it towards the target (stable policies
+            only; 0: off).
+        align_cosine: The cosine c of that hinge, in [-1, 1].
         penalty_every: Evaluate the shape and warp penalties at every k-th step only, with k
             times their weight (1: every step).
         patience: Stop when the smoothed loss has not improved by `min_improvement` (relative)
@@ -97,6 +110,8 @@ class TrainConfig:
     noise_correction: float = 0.0
     shape_weight: float = 0.0
     warp_weight: float = 0.001
+    align_weight: float = 0.1
+    align_cosine: float = 0.5
     penalty_every: int = 4
     patience: int = 0
     min_improvement: float = 1e-3
@@ -117,6 +132,8 @@ class TrainConfig:
             raise ConfigError(f"unknown dtype {self.dtype!r}; choose from {list(DTYPES)}")
         if self.penalty_every < 1:
             raise ConfigError(f"penalty_every must be >= 1, got {self.penalty_every}")
+        if not -1.0 <= self.align_cosine <= 1.0:
+            raise ConfigError(f"align_cosine must be in [-1, 1], got {self.align_cosine}")
         if self.window < 0 or self.batch_size < 0 or self.window_batch_size < 0:
             raise ConfigError(
                 f"window and batch sizes must be >= 0, got window {self.window}, batch_size "
@@ -128,6 +145,7 @@ class TrainConfig:
             "noise_correction",
             "shape_weight",
             "warp_weight",
+            "align_weight",
         ):
             weight = getattr(self, name)
             if not (weight >= 0 and math.isfinite(weight)):
@@ -309,6 +327,7 @@ def fit(
     samples = make_samples(chart, policy.normalization, split, window=config.window).to(
         dtype, config.device
     )
+    policy.set_anchors(samples.positions)
     generator = torch.Generator().manual_seed(config.seed)
     optimizer = _adam(policy, config)
     state = _State(good=copy.deepcopy(policy.state_dict()))
@@ -642,8 +661,11 @@ def _step_loss(policy: StablePolicy, config: TrainConfig, inputs: _StepInputs) -
     """The loss of paper eq. (5) with the penalties, on one step's drawn inputs; no
     randomness of its own (so it can run under ``torch.func.vmap``)."""
     v = inputs.velocities
-    pi, f = policy.field_and_nominal(inputs.positions)
+    terms = policy.field_terms(inputs.positions)
+    pi, f = terms.field, terms.nominal
     loss = config.velocity_weight * velocity_loss(pi, v, config.velocity_shape)
+    if config.align_weight and terms.grad is not None:
+        loss = loss + config.align_weight * align_loss(terms.grad, v, config.align_cosine)
     if config.nominal_weight and f is not None:
         loss = loss + config.nominal_weight * velocity_loss(f, v, config.velocity_shape)
     if inputs.windows is not None:
