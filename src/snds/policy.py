@@ -130,7 +130,7 @@ class PolicyConfig:
     decay_far: float = 2.0
     decay_near: float = 2.0
     near_radius: float = 0.2
-    data_rate: float = 0.02
+    data_rate: float = 0.1
     data_radius: float = 0.1
     anchors: int = 256
     warp_layers: int | None = None
