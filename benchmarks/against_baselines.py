@@ -1,0 +1,111 @@
+"""SNDS rows of one sweep against the baselines' rows of another: issue 21's counts.
+
+For each motion, SNDS's mean DTW and velocity MSE (paper scale) over its seeds against the
+best baseline mean of the other sweep, with SNDS's worst converged fraction and its decrease
+violations. Writes the table to ``benchmarks/README.md`` (block ``snds-vs-baselines``) and
+the figures beside the SNDS rows (``against-baselines.json``).
+
+    python benchmarks/against_baselines.py benchmarks/results/data-rate/paper8-snds-0.1.jsonl \\
+        benchmarks/results/sweeps/paper8/results.jsonl
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+from collections import defaultdict
+from pathlib import Path
+
+from _readme import write_readme_section
+
+BASELINES = ("bc", "sdsef", "lpvds", "seds")
+
+
+def _rows(path: Path) -> list[dict]:
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+
+
+def _mean(rows: list[dict], key: str) -> float:
+    return statistics.fmean(row[key] for row in rows)
+
+
+def compare(snds_rows: list[dict], base_rows: list[dict]) -> list[dict]:
+    """One record per motion of the SNDS rows, in their order of first appearance."""
+    base: dict[tuple[str, str], list[dict]] = defaultdict(list)
+    for row in base_rows:
+        base[(row["motion"], row["method"])].append(row)
+    ours: dict[str, list[dict]] = defaultdict(list)
+    for row in snds_rows:
+        if row["method"] == "snds":
+            ours[row["motion"]].append(row)
+    records = []
+    for motion, rows in ours.items():
+        methods = [m for m in BASELINES if base[(motion, m)]]
+        dtw = {m: _mean(base[(motion, m)], "dtw_paper") for m in methods}
+        mse = {m: _mean(base[(motion, m)], "velocity_mse_paper") for m in methods}
+        best_dtw, best_mse = min(dtw, key=dtw.get), min(mse, key=mse.get)
+        records.append(
+            {
+                "motion": motion,
+                "runs": len(rows),
+                "dtw": _mean(rows, "dtw_paper"),
+                "best_baseline_dtw": dtw[best_dtw],
+                "best_dtw_method": best_dtw,
+                "mse": _mean(rows, "velocity_mse_paper"),
+                "best_baseline_mse": mse[best_mse],
+                "best_mse_method": best_mse,
+                "min_converged": min(row["converged_fraction"] for row in rows),
+                "violations": sum(row["decrease_violations"] for row in rows),
+                "median_train_seconds": statistics.median(row["train_seconds"] for row in rows),
+                "median_train_cpu_seconds": statistics.median(
+                    row["train_cpu_seconds"] for row in rows
+                ),
+            }
+        )
+    return records
+
+
+def table(records: list[dict], snds_path: Path, base_path: Path) -> str:
+    lines = [
+        f"SNDS rows `{snds_path.name}` against the baselines of `{base_path.parent.name}` "
+        "(means over seeds, paper scale; **bold**: SNDS below every baseline).",
+        "",
+        "| motion | runs | SNDS DTW | best baseline DTW | SNDS MSE | best baseline MSE "
+        "| SNDS converged (min) | violations |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in records:
+        dtw = f"{r['dtw']:.3f}"
+        mse = f"{r['mse']:.3g}"
+        lines.append(
+            f"| {r['motion']} | {r['runs']} "
+            f"| {f'**{dtw}**' if r['dtw'] < r['best_baseline_dtw'] else dtw} "
+            f"| {r['best_dtw_method']} {r['best_baseline_dtw']:.3f} "
+            f"| {f'**{mse}**' if r['mse'] < r['best_baseline_mse'] else mse} "
+            f"| {r['best_mse_method']} {r['best_baseline_mse']:.3g} "
+            f"| {r['min_converged']:.3f} | {r['violations']} |"
+        )
+    dtw_ahead = sum(r["dtw"] < r["best_baseline_dtw"] for r in records)
+    mse_ahead = sum(r["mse"] < r["best_baseline_mse"] for r in records)
+    lines += ["", f"DTW ahead on {dtw_ahead} of {len(records)}, MSE on {mse_ahead}."]
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("snds", type=Path, help="results.jsonl with the SNDS rows")
+    parser.add_argument("baselines", type=Path, help="results.jsonl with the baselines' rows")
+    parser.add_argument("--no-readme", action="store_true")
+    args = parser.parse_args()
+    records = compare(_rows(args.snds), _rows(args.baselines))
+    out = args.snds.with_name("against-baselines.json")
+    out.write_text(json.dumps(records, indent=1) + "\n")
+    body = table(records, args.snds, args.baselines)
+    print(body)
+    if not args.no_readme:
+        write_readme_section("snds-vs-baselines", body)
+
+
+if __name__ == "__main__":
+    main()
