@@ -209,6 +209,11 @@ def test_data_kernel_lowers_the_rate_on_the_data_only_and_the_decrease_holds(spi
     slack = 1e-9 * (grad_v.norm(dim=-1) * policy.nominal(x).norm(dim=-1) + v)
     assert (lhs <= -policy.decay(v, x) + slack).all()
     assert (policy.decay(v, x) >= 0.02 * v * (1 - 1e-12)).all()
+    # and the kernel only ever lowers the rate: with rho 0 (relaxed mode) it stays 0
+    relaxed = dataclasses.replace(config, decay_rate=0.0, decay_far=0.0, data_rate=0.3)
+    unforced = make_policy(spiral, relaxed, seed=5)
+    unforced.set_anchors(torch.tensor([[0.5, 0.0], [-0.5, 0.0]], dtype=torch.float64))
+    assert (unforced.decay(v, x) == 0).all()
     # and the anchors survive a save / load round trip
     save_model(policy, tmp_path / "m")
     loaded, _ = load_model(tmp_path / "m")

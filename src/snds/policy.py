@@ -95,8 +95,8 @@ class PolicyConfig:
             |x| ~ exp(-rho t / 2); the default binds only where the data say nothing
             (docs/design.md; 0: off).
         near_radius: Radius of that region, in model coordinates.
-        data_rate: rho_data, the decay rate that replaces rho on the demonstrations:
-            rho becomes rho (1 - k(x)) + rho_data k(x), with
+        data_rate: rho_data, the decay rate that replaces rho on the demonstrations if it is
+            lower: rho becomes rho (1 - k(x)) + min(rho, rho_data) k(x), with
             k(x) = exp(-d(x)^2 / (2 data_radius^2)) and d(x) the distance from x to the
             nearest of the policy's anchors, ``anchors`` training states spread along the
             demonstrations (set by :func:`snds.train.fit`). A demonstration that starts or
@@ -492,7 +492,7 @@ class StablePolicy(Policy):
 
     def decay(self, v: Tensor, x: Tensor) -> Tensor:
         """The required decrease rate, shape (*,):
-        a(x) = V (rho (1 - k(x)) + rho_data k(x) + rho_far (|x| - 1)_+
+        a(x) = V (rho (1 - k(x)) + min(rho, rho_data) k(x) + rho_far (|x| - 1)_+
         + rho_near (1 - |x| / r_near)_+), with k(x) the data kernel of
         :attr:`PolicyConfig.data_rate` (0 without anchors).
 
@@ -504,7 +504,8 @@ class StablePolicy(Policy):
         radius = x.norm(dim=-1)
         rate = config.decay_rate + config.decay_far * (radius - 1.0).clamp_min(0.0)
         if self.anchors is not None:
-            rate = rate - (config.decay_rate - config.data_rate) * self._data_kernel(x)
+            lowered = config.decay_rate - min(config.decay_rate, config.data_rate)
+            rate = rate - lowered * self._data_kernel(x)
         if config.decay_near:
             rate = rate + config.decay_near * (1.0 - radius / config.near_radius).clamp_min(0.0)
         return v * rate
