@@ -167,7 +167,9 @@ def _build(path: Path, cls: type[Policy], description: dict) -> Policy:
     # A description we did not write can break a constructor anywhere: a wrong type
     # (TypeError), a bad value (ValueError, DataError), a negative width (RuntimeError).
     except (TypeError, ValueError, RuntimeError, KeyError, AttributeError, DataError) as error:
-        raise ModelFileError(f"{path}: invalid architecture ({error})") from error
+        # One line: torch's own messages list every overload on lines of their own.
+        reason = (str(error).splitlines() or [type(error).__name__])[0]
+        raise ModelFileError(f"{path}: invalid architecture ({reason})") from error
 
 
 def _described_shapes(path: Path, cls: type[Policy], description: dict) -> dict[str, tuple]:

@@ -156,6 +156,9 @@ class PolicyConfig:
                 f"need decay_near >= 0 and near_radius > 0, got {self.decay_near} and "
                 f"{self.near_radius}"
             )
+        # bool is an int to Python: only a true integer counts anchors.
+        if type(self.anchors) is not int:
+            raise ConfigError(f"anchors must be an integer, got {self.anchors!r}")
         if not (self.data_rate >= 0 and self.data_radius > 0 and self.anchors >= 0):
             raise ConfigError(
                 f"need data_rate >= 0, data_radius > 0 and anchors >= 0, got {self.data_rate}, "
