@@ -309,7 +309,7 @@ class _FusedStable(torch.nn.Module):
             buffer("anchors_t", anchors.T)
             buffer("anchors_sq", (anchors * anchors).sum(-1))
             self.inverse_width = 1.0 / (2.0 * config.data_radius**2)
-            self.data_gain = speed * (config.decay_rate - min(config.decay_rate, config.data_rate))
+            self.data_gain = speed * config.data_rate_drop
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         z = torch.cat([(x - self.center) / self.length, self.zero_row])  # the target last

@@ -38,11 +38,7 @@ class Samples:
 
 
 def make_samples(
-    demos: Demonstrations,
-    normalization: Normalization,
-    split: Split,
-    *,
-    window: int,
+    demos: Demonstrations, normalization: Normalization, split: Split, *, window: int
 ) -> Samples:
     """Collects the training samples and the multi-step windows that lie wholly in training.
 

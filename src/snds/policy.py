@@ -175,6 +175,12 @@ class PolicyConfig:
                 f"unknown rectifier {self.rectifier!r}; choose from {list(RECTIFIERS)}"
             )
 
+    @property
+    def data_rate_drop(self) -> float:
+        """rho - min(rho, rho_data): how far the data kernel lowers the rate on an anchor
+        (never raises it, so relaxed mode stays relaxed)."""
+        return self.decay_rate - min(self.decay_rate, self.data_rate)
+
     def to_dict(self) -> dict:
         """JSON-ready form."""
         return asdict(self)
@@ -507,8 +513,7 @@ class StablePolicy(Policy):
         radius = x.norm(dim=-1)
         rate = config.decay_rate + config.decay_far * (radius - 1.0).clamp_min(0.0)
         if self.anchors is not None:
-            lowered = config.decay_rate - min(config.decay_rate, config.data_rate)
-            rate = rate - lowered * self._data_kernel(x)
+            rate = rate - config.data_rate_drop * self._data_kernel(x)
         if config.decay_near:
             rate = rate + config.decay_near * (1.0 - radius / config.near_radius).clamp_min(0.0)
         return v * rate
