@@ -246,7 +246,9 @@ def test_a_pose_fit_resumes_bit_for_bit(tmp_path, monkeypatch):
 
     poses = with_synthetic_orientations(spiral_demos(count=2, samples=150), seed=1)
     split = split_samples(poses, test_fraction=0.2, seed=0)
-    config = TrainConfig(steps=40, batch_size=64, position_noise=0.0, shape_weight=0.01)
+    config = TrainConfig(
+        steps=40, batch_size=64, position_noise=0.0, noise_correction=0.0, shape_weight=0.01
+    )
     reference = make_any_policy(poses, config=SMALL, seed=5)
     expected = fit(reference, poses, split, config, progress=False)
     checkpoint = tmp_path / CHECKPOINT

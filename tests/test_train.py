@@ -134,7 +134,13 @@ def _nominal_gradient(policy, samples, weight: float) -> tuple[torch.Tensor, tor
 
     handle = policy.nominal_net.register_forward_hook(keep)
     # Noise-free: the gradients are compared at the very states of the batch.
-    config = TrainConfig(batch_size=0, nominal_weight=weight, position_noise=0.0, dtype="float64")
+    config = TrainConfig(
+        batch_size=0,
+        nominal_weight=weight,
+        position_noise=0.0,
+        noise_correction=0.0,
+        dtype="float64",
+    )
     loss = train_module._loss(policy, samples, config, torch.Generator().manual_seed(0))
     loss.backward()
     handle.remove()
@@ -182,7 +188,9 @@ def test_position_noise_perturbs_the_states_only(spiral):
     seen = []
     handle = policy.nominal_net.register_forward_hook(lambda m, i, o: seen.append(i[0][:-1]))
     for noise in (0.0, 0.05):
-        config = TrainConfig(batch_size=0, position_noise=noise, dtype="float64")
+        config = TrainConfig(
+            batch_size=0, position_noise=noise, noise_correction=0.0, dtype="float64"
+        )
         train_module._loss(policy, samples, config, torch.Generator().manual_seed(0))
     handle.remove()
     assert torch.equal(seen[0], samples.positions)
@@ -193,7 +201,14 @@ def test_position_noise_perturbs_the_states_only(spiral):
 
 @pytest.mark.parametrize(
     "name",
-    ["nominal_weight", "position_noise", "noise_correction", "shape_weight", "warp_weight"],
+    [
+        "nominal_weight",
+        "position_noise",
+        "noise_correction",
+        "correction_noise",
+        "shape_weight",
+        "warp_weight",
+    ],
 )
 @pytest.mark.parametrize("value", [-0.1, float("nan"), float("inf")])
 def test_loss_weights_must_be_finite_and_non_negative(name, value):
@@ -249,7 +264,7 @@ def test_penalties_come_every_kth_step_with_k_times_their_weight(spiral):
 
     def loss(step: int, **settings) -> float:
         weights = {"warp_weight": 0.5, "shape_weight": 0.2} | settings
-        train = TrainConfig(position_noise=0.0, dtype="float64", **weights)
+        train = TrainConfig(position_noise=0.0, noise_correction=0.0, dtype="float64", **weights)
         generator = torch.Generator().manual_seed(3)
         return float(train_module._loss(policy, samples, train, generator, step).detach())
 
@@ -312,30 +327,90 @@ def test_the_part_of_an_offset_across_the_direction_of_travel():
     torch.testing.assert_close(across, expected)
 
 
-def test_corrective_noise_trains_noisy_states_back_towards_the_path(spiral):
-    # GIVEN the full batch of training samples and position noise, with and without correction
+def test_corrective_noise_trains_moved_states_towards_the_nearest_sample(spiral):
+    # GIVEN the full batch of training samples, no position noise, and a correction share
     policy = make_policy(spiral, seed=0)
     samples = train_module.make_samples(spiral, policy.normalization, no_split(spiral), window=0)
     samples = samples.to(torch.float64)
-    plain = TrainConfig(batch_size=0, position_noise=0.05, seed=0)
-    corrected = dataclasses.replace(plain, noise_correction=4.0)
-    draws = [
-        train_module._draw_step(policy, samples, config, torch.Generator().manual_seed(3))
-        for config in (plain, corrected)
-    ]
-    # THEN the states are the same noisy states, and the corrected velocities add -k times
-    # the noise across the demonstrated direction: none along it
-    torch.testing.assert_close(draws[0].positions, draws[1].positions, rtol=0, atol=0)
-    torch.testing.assert_close(draws[0].velocities, samples.velocities, rtol=0, atol=0)
-    noise = draws[1].positions - samples.positions
-    change = draws[1].velocities - samples.velocities
-    speed = samples.velocities.norm(dim=-1, keepdim=True)
-    moving = speed[:, 0] > 0
-    direction = samples.velocities[moving] / speed[moving]
-    across = noise[moving] - (noise[moving] * direction).sum(-1, keepdim=True) * direction
-    torch.testing.assert_close(change[moving], -4.0 * across)
-    assert (change[moving] * direction).sum(-1).abs().max() < 1e-12
-    # Where the demonstration rests there is no direction: the whole offset is corrected.
-    assert (~moving).any()
-    torch.testing.assert_close(change[~moving], -4.0 * noise[~moving])
-    assert change.norm(dim=-1).mean() > 0.05
+    config = TrainConfig(
+        batch_size=0,
+        position_noise=0.0,
+        noise_correction=4.0,
+        correction_noise=0.05,
+        correction_share=0.3,
+        seed=0,
+    )
+    draw = train_module._draw_step(policy, samples, config, torch.Generator().manual_seed(3))
+    # THEN about that share of the states moved, by about that noise; the rest are as
+    # demonstrated, with their demonstrated velocities
+    moved = (draw.positions != samples.positions).any(-1)
+    assert 0.25 < float(moved.double().mean()) < 0.35
+    kept = ~moved
+    torch.testing.assert_close(draw.positions[kept], samples.positions[kept], rtol=0, atol=0)
+    torch.testing.assert_close(draw.velocities[kept], samples.velocities[kept], rtol=0, atol=0)
+    offsets = draw.positions[moved] - samples.positions[moved]
+    assert float(offsets.std()) == pytest.approx(0.05, rel=0.1)
+    # AND each moved state is trained towards the nearest sample's velocity minus k times
+    # the offset from that sample across it (found here by brute force)
+    x = draw.positions[moved]
+    nearest = torch.cdist(x, samples.positions).argmin(dim=1)
+    anchor, velocity = samples.positions[nearest], samples.velocities[nearest]
+    direction = velocity / velocity.norm(dim=-1, keepdim=True)
+    offset = x - anchor
+    across = offset - (offset * direction).sum(-1, keepdim=True) * direction
+    torch.testing.assert_close(draw.velocities[moved], velocity - 4.0 * across)
+    assert float(across.norm(dim=-1).mean()) > 0.01
+    # The nearest sample is not always the one a state was moved from: then the state
+    # learns its neighbour's velocity, not a correction towards its own sample.
+    source = torch.nonzero(moved)[:, 0]
+    assert (nearest != source).any()
+
+
+def test_corrective_noise_searches_a_bounded_set_of_samples(spiral, monkeypatch):
+    # GIVEN more samples than the search's bound
+    monkeypatch.setattr(train_module, "CORRECTION_REFERENCES", 100)
+    policy = make_policy(spiral, seed=0)
+    samples = train_module.make_samples(spiral, policy.normalization, no_split(spiral), window=0)
+    samples = samples.to(torch.float64)
+    assert len(samples.positions) > 1000
+    config = TrainConfig(
+        batch_size=0,
+        position_noise=0.0,
+        noise_correction=10.0,
+        correction_noise=0.05,
+        correction_share=1.0,
+    )
+    draw = train_module._draw_step(policy, samples, config, torch.Generator().manual_seed(3))
+    # THEN every target is the velocity of one of the evenly spaced references, corrected
+    stride = -(-len(samples.positions) // 100)
+    references = samples.positions[::stride]
+    assert len(references) <= 100
+    nearest = torch.cdist(draw.positions, references).argmin(dim=1) * stride
+    velocity = samples.velocities[nearest]
+    offset = draw.positions - samples.positions[nearest]
+    expected = velocity - config.noise_correction * train_module._across(offset, velocity)
+    torch.testing.assert_close(draw.velocities, expected)
+
+
+def test_no_correction_leaves_the_batch_and_the_random_stream_alone(spiral):
+    policy = make_policy(spiral, seed=0)
+    samples = train_module.make_samples(spiral, policy.normalization, no_split(spiral), window=0)
+    samples = samples.to(torch.float64)
+    off = TrainConfig(batch_size=64, noise_correction=0.0)
+    generator = torch.Generator().manual_seed(3)
+    # (a step without the penalties, whose random states come after)
+    draw = train_module._draw_step(policy, samples, off, generator, step=1)
+    after = torch.rand(1, generator=generator)
+    # The same draws as position noise alone: a batch index, then its noise.
+    generator = torch.Generator().manual_seed(3)
+    index = torch.randint(len(samples.positions), (64,), generator=generator)
+    noise = off.position_noise * torch.randn((64, 2), generator=generator).double()
+    torch.testing.assert_close(draw.positions, samples.positions[index] + noise)
+    torch.testing.assert_close(draw.velocities, samples.velocities[index], rtol=0, atol=0)
+    assert torch.equal(after, torch.rand(1, generator=generator))
+
+
+@pytest.mark.parametrize("share", [-0.1, 1.5, float("nan")])
+def test_correction_share_must_be_a_fraction(share):
+    with pytest.raises(train_module.ConfigError, match="correction_share"):
+        TrainConfig(correction_share=share)

@@ -36,12 +36,17 @@ class Recipe:
 #: - ``compact``: smaller networks (hidden (64, 64), 64 Fourier features), for controllers
 #:   that evaluate large batches.
 #: - ``pose``: the training settings of SE(3) pose models: V's shape penalty on
-#:   (``shape_weight`` 0.01), no noise on the training states (``position_noise`` 0), no
-#:   alignment term (``align_weight`` 0).
+#:   (``shape_weight`` 0.01), no noise on the training states (``position_noise`` 0) and no
+#:   noise correction (a nearest sample over positions and rotation vectors at once would
+#:   mix units), no alignment term (``align_weight`` 0).
 RECIPES: dict[str, Recipe] = {
     "default": Recipe(),
     "compact": Recipe(policy=PolicyConfig(hidden=(64, 64), fourier_features=64)),
-    "pose": Recipe(train=TrainConfig(shape_weight=0.01, position_noise=0.0, align_weight=0.0)),
+    "pose": Recipe(
+        train=TrainConfig(
+            shape_weight=0.01, position_noise=0.0, noise_correction=0.0, align_weight=0.0
+        )
+    ),
 }
 
 #: The recipes that differ from ``default`` in the policy's network sizes only: the choices

@@ -65,11 +65,19 @@ class TrainConfig:
             velocities stay as demonstrated unless ``noise_correction`` is on. It smooths
             the fit where demonstrations run close together at different speeds (0: off;
             SE(3) pose policies train without it).
-        noise_correction: A gain k per unit of model time: a state moved by the position
-            noise :math:`\delta` is trained towards :math:`v - k \delta_\perp`, with
-            :math:`\delta_\perp` the part of :math:`\delta` across the demonstrated
-            direction of travel, so that the field pulls states back onto the demonstrated
-            path (0: the velocities as demonstrated; no effect without position noise).
+        noise_correction: A gain k per unit of model time that pulls states back onto the
+            demonstrated paths. A share (``correction_share``) of each batch's states is
+            moved by Gaussian offsets of standard deviation ``correction_noise`` (instead
+            of the position noise); each moved state :math:`\tilde x` is trained towards
+            :math:`v_j - k (\tilde x - x_j)_\perp`, with :math:`x_j` the reference sample
+            nearest to it, :math:`v_j` its velocity and :math:`\perp` the part across
+            :math:`v_j` (all of it where :math:`v_j = 0`). The nearest sample, not the one
+            the state was moved from: a state that lands on a neighbouring demonstration
+            learns that demonstration's velocity, so close demonstrations do not contradict
+            each other (0: off).
+        correction_noise: The standard deviation of those offsets (model coordinates).
+        correction_share: The share of each batch's states that is moved and corrected, in
+            [0, 1].
         shape_weight: Weight of the penalty :math:`\operatorname{Var}_x \log(V(x) / |x|^2)`
             over 256 random states, uniform in :math:`[-2, 2]^n` (model coordinates): it
             keeps V's sublevel sets round where the data do not ask otherwise, against stiff
@@ -107,7 +115,9 @@ class TrainConfig:
     velocity_weight: float = 1.0
     nominal_weight: float = 0.01
     position_noise: float = 0.0015
-    noise_correction: float = 0.0
+    noise_correction: float = 10.0
+    correction_noise: float = 0.005
+    correction_share: float = 0.25
     shape_weight: float = 0.0
     warp_weight: float = 0.001
     align_weight: float = 0.1
@@ -132,6 +142,8 @@ class TrainConfig:
             raise ConfigError(f"unknown dtype {self.dtype!r}; choose from {list(DTYPES)}")
         if self.penalty_every < 1:
             raise ConfigError(f"penalty_every must be >= 1, got {self.penalty_every}")
+        if not 0.0 <= self.correction_share <= 1.0:
+            raise ConfigError(f"correction_share must be in [0, 1], got {self.correction_share}")
         if not -1.0 <= self.align_cosine <= 1.0:
             raise ConfigError(f"align_cosine must be in [-1, 1], got {self.align_cosine}")
         if self.window < 0 or self.batch_size < 0 or self.window_batch_size < 0:
@@ -143,6 +155,7 @@ class TrainConfig:
             "nominal_weight",
             "position_noise",
             "noise_correction",
+            "correction_noise",
             "shape_weight",
             "warp_weight",
             "align_weight",
@@ -622,10 +635,9 @@ def _draw_step(
     if index is not None:
         x, v = x[index], v[index]
     if config.position_noise:
-        noise = config.position_noise * torch.randn(x.shape, generator=generator).to(x)
-        x = x + noise
-        if config.noise_correction:
-            v = v - config.noise_correction * _across(noise, v)
+        x = x + config.position_noise * torch.randn(x.shape, generator=generator).to(x)
+    if config.noise_correction and config.correction_share:
+        x, v = _corrected(x, v, samples, config, generator)
     inputs = _StepInputs(positions=x, velocities=v)
     if config.window and len(samples.window_starts):
         index = _batch(
@@ -647,6 +659,33 @@ def _draw_step(
     if config.warp_weight and _warp_of(policy) is not None and policy.stable:
         inputs = replace(inputs, warp_draws=_warp_draws(x.shape[-1], generator, param))
     return inputs
+
+
+#: The most training samples :func:`_corrected` searches for the nearest one (evenly spaced
+#: in the samples' order), so a step's cost does not grow with the data.
+CORRECTION_REFERENCES = 8192
+
+
+def _corrected(
+    x: torch.Tensor,
+    v: torch.Tensor,
+    samples: Samples,
+    config: TrainConfig,
+    generator: torch.Generator,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """A batch (B, n) with a share of its states moved off the data and their velocities
+    corrected towards the nearest reference sample (see ``TrainConfig.noise_correction``)."""
+    chosen = torch.rand(len(x), generator=generator).to(x.device) < config.correction_share
+    offsets = config.correction_noise * torch.randn(x.shape, generator=generator).to(x)
+    moved = x[chosen] + offsets[chosen]
+    stride = max(1, -(-len(samples.positions) // CORRECTION_REFERENCES))
+    references = samples.positions[::stride]
+    nearest = torch.cdist(moved, references).argmin(dim=1) * stride
+    anchor, velocity = samples.positions[nearest], samples.velocities[nearest]
+    target = velocity - config.noise_correction * _across(moved - anchor, velocity)
+    x, v = x.clone(), v.clone()
+    x[chosen], v[chosen] = moved, target
+    return x, v
 
 
 def _across(offset: torch.Tensor, velocity: torch.Tensor) -> torch.Tensor:

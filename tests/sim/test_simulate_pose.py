@@ -52,7 +52,7 @@ def pose_policy(pose_demos):
     torch.manual_seed(0)
     policy = make_pose_policy(pose_demos, config=FAST, seed=0)
     # Clean states, as `snds train --se3` trains pose models.
-    config = TrainConfig(steps=300, seed=0, position_noise=0.0)
+    config = TrainConfig(steps=300, seed=0, position_noise=0.0, noise_correction=0.0)
     fit(policy, pose_demos, no_split(pose_demos), config, progress=False)
     return policy.to(torch.float64).eval()
 

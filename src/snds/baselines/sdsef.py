@@ -268,7 +268,8 @@ class SDSEF(Method):
 
     The optimiser of SNDS (:class:`~snds.train.TrainConfig`: Adam with warm-up and cosine
     decay, in model coordinates) with the budget SDS-EF was measured at, 3,000 steps at a
-    peak rate of 0.01, on the demonstrated states as the paper (no ``position_noise``).
+    peak rate of 0.01, on the demonstrated states as the paper (no ``position_noise``, no
+    ``noise_correction``).
 
     Attributes:
         name: Its key in :data:`snds.methods.METHODS`.
@@ -282,7 +283,9 @@ class SDSEF(Method):
     description: str = "SDS-EF: Euclideanizing flows (coupling-layer diffeomorphism, Rana 2020)"
     policy_config: SDSEFConfig = field(default_factory=SDSEFConfig)
     train_config: TrainConfig = field(
-        default_factory=lambda: TrainConfig(steps=3000, lr=1e-2, position_noise=0.0)
+        default_factory=lambda: TrainConfig(
+            steps=3000, lr=1e-2, position_noise=0.0, noise_correction=0.0
+        )
     )
     has_lyapunov: ClassVar[bool] = True
 

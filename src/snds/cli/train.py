@@ -75,9 +75,12 @@ def register(commands: argparse._SubParsersAction) -> None:
         "--noise-correction",
         type=float,
         default=None,
-        help="gain k (per unit of model time) that trains a state moved by the position noise "
-        "back towards the demonstrated path: velocity minus k times the noise across the "
-        f"direction of travel (default {DEFAULT.train.noise_correction:g}; 0: off)",
+        help="gain k (per unit of model time) that pulls states back onto the demonstrated "
+        f"paths: a share ({DEFAULT.train.correction_share:g}) of each batch is moved off the "
+        f"data (noise {DEFAULT.train.correction_noise:g}) and trained towards the nearest "
+        "sample's velocity minus k times the offset across it (default "
+        f"{DEFAULT.train.noise_correction:g} for positions, {POSE.train.noise_correction:g} "
+        "for SE(3) pose models; 0: off)",
     )
     parser.add_argument(
         "--shape-weight",
