@@ -22,6 +22,7 @@ from pathlib import Path
 import torch
 
 from snds import make_policy
+from snds.benchmark import MOTION_GROUPS
 from snds.data import load_lasa, split_samples
 from snds.evaluate import accuracy
 from snds.policy import float64_copy
@@ -29,7 +30,6 @@ from snds.recipes import RECIPES
 from snds.train import fit
 
 HERE = Path(__file__).resolve().parent
-PAPER8 = ["Sine", "PShape", "Worm", "GShape", "NShape", "DoubleBendedLine", "CShape", "Angle"]
 
 
 def run(motion: str, seed: int, setting: str) -> dict:
@@ -66,7 +66,7 @@ def run(motion: str, seed: int, setting: str) -> dict:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--motions", nargs="+", default=PAPER8)
+    parser.add_argument("--motions", nargs="+", default=list(MOTION_GROUPS["paper8"]))
     parser.add_argument("--seeds", type=int, default=1)
     parser.add_argument(
         "--settings",

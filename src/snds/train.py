@@ -62,13 +62,13 @@ class TrainConfig:
             guarantee is pi's and does not depend on it (0: off, the paper's loss).
         position_noise: Standard deviation of Gaussian noise added to the training states at
             every step (model coordinates, where the data span about [-1, 1]); the
-            velocities stay as demonstrated unless ``noise_correction`` is on. It smooths
-            the fit where demonstrations run close together at different speeds (0: off;
-            SE(3) pose policies train without it).
+            velocities stay as demonstrated (``noise_correction`` moves and corrects states
+            of its own). It smooths the fit where demonstrations run close together at
+            different speeds (0: off; SE(3) pose policies train without it).
         noise_correction: A gain k per unit of model time that pulls states back onto the
             demonstrated paths. A share (``correction_share``) of each batch's states is
-            moved by Gaussian offsets of standard deviation ``correction_noise`` (instead
-            of the position noise); each moved state :math:`\tilde x` is trained towards
+            moved by further Gaussian offsets of standard deviation ``correction_noise``
+            (on top of the position noise); each moved state :math:`\tilde x` is trained towards
             :math:`v_j - k (\tilde x - x_j)_\perp`, with :math:`x_j` the reference sample
             nearest to it, :math:`v_j` its velocity and :math:`\perp` the part across
             :math:`v_j` (all of it where :math:`v_j = 0`). The nearest sample, not the one
