@@ -19,6 +19,9 @@ Variants:
   ``clip_grad_norm_`` and ``Adam.step`` instead of :func:`snds.train.clip_gradients` and
   :func:`snds.train.adam_step` (the same arithmetic).
 * ``before``: both of the above: the training step as it was before these changes.
+* ``brute-nearest``: the noise correction's nearest-sample search as all distances
+  (``torch.cdist``) instead of the k-d tree of :meth:`snds.losses.Samples.nearest`;
+  ``no-correction``: the default with ``noise_correction=0``.
 * ``batch16``: a batch of 16: what a step costs that is not proportional to the batch.
 * ``batch256``, ``penalty8``: the default with ``batch_size=256`` / ``penalty_every=8``.
 * ``warp4``: four coupling layers instead of six; ``warpfeatures32``: 32 random features
@@ -42,6 +45,7 @@ from collections.abc import Callable, Iterator
 
 import torch
 
+import snds.losses
 import snds.nn.fused
 import snds.train
 from snds.data import Normalization, load_lasa, split_samples
@@ -88,6 +92,21 @@ def _before() -> Iterator[None]:
         yield
 
 
+@contextlib.contextmanager
+def _brute_nearest() -> Iterator[None]:
+    original = snds.losses.Samples.nearest
+
+    def nearest(self: snds.losses.Samples, states: torch.Tensor) -> torch.Tensor:
+        stride = max(1, -(-len(self.positions) // snds.losses.NEAREST_REFERENCES))
+        return torch.cdist(states, self.positions[::stride]).argmin(dim=1) * stride
+
+    snds.losses.Samples.nearest = nearest
+    try:
+        yield
+    finally:
+        snds.losses.Samples.nearest = original
+
+
 _COMPILE_SECONDS: dict[str, float] = {}
 
 
@@ -117,6 +136,8 @@ VARIANTS: dict[str, tuple[dict, dict, Callable[[], contextlib.AbstractContextMan
     "reference": ({}, {}, _reference),
     "torch-optimizer": ({}, {}, _torch_optimizer),
     "before": ({}, {}, _before),
+    "brute-nearest": ({}, {}, _brute_nearest),
+    "no-correction": ({}, {"noise_correction": 0.0}, _nothing),
     "batch256": ({}, {"batch_size": 256}, _nothing),
     "batch16": ({}, {"batch_size": 16}, _nothing),
     "penalty8": ({}, {"penalty_every": 8}, _nothing),

@@ -2,7 +2,7 @@ import numpy as np
 import torch
 
 from snds.data import Demonstration, Demonstrations, Normalization, no_split, split_samples
-from snds.losses import align_loss, make_samples, srvf, velocity_loss, window_loss
+from snds.losses import Samples, align_loss, make_samples, srvf, velocity_loss, window_loss
 
 
 def _line() -> Demonstrations:
@@ -64,3 +64,22 @@ def test_align_loss_has_a_finite_gradient_where_grad_v_vanishes():
     velocity = torch.tensor([[1.0, 0.0], [0.0, 0.0], [0.5, 0.5]], dtype=torch.float64)
     align_loss(grad, velocity, 0.5).backward()
     assert torch.isfinite(grad.grad).all()
+
+
+def test_nearest_sample_matches_brute_force_and_survives_a_dtype_change():
+    # GIVEN float32 samples in 3-D and queries near and far from them
+    generator = torch.Generator().manual_seed(0)
+    positions = torch.randn(3000, 3, generator=generator, dtype=torch.float32)
+    empty = torch.zeros(0, 3)
+    samples = Samples(positions, -positions, empty, torch.zeros(0, 1, 3), torch.zeros(0, 1))
+    states = torch.cat([positions[:200] + 0.01 * torch.randn(200, 3), 5 * torch.randn(50, 3)])
+    # WHEN searching with the tree
+    found = samples.nearest(states)
+    # THEN it finds the sample at the smallest distance (ties aside, which random data lack)
+    squared = ((states.double()[:, None] - positions.double()[None]) ** 2).sum(-1)
+    assert found.dtype == torch.int64 and found.shape == (250,)
+    torch.testing.assert_close(squared[torch.arange(250), found], squared.min(dim=1).values)
+    # AND the tree cached by the search is not carried into a converted copy as a field
+    converted = samples.to(torch.float64)
+    assert converted.positions.dtype == torch.float64
+    torch.testing.assert_close(converted.nearest(states.double()), found)

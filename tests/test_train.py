@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 import torch
 
+import snds.losses as losses_module
 import snds.train as train_module
 from snds.data import no_split, split_samples
 from snds.evaluate import accuracy
@@ -122,6 +123,11 @@ def test_shape_weight_rounds_v_and_keeps_the_fit(spiral):
             penalty = train_module.shape_penalty(policy.double(), 2, generator)
         penalties[weight] = float(penalty)
     assert penalties[1.0] < 0.5 * penalties[0.0]
+
+
+def _brute_force_nearest(states: torch.Tensor, references: torch.Tensor) -> torch.Tensor:
+    """The index of each state's nearest reference, from every squared distance."""
+    return ((states[:, None, :] - references[None, :, :]) ** 2).sum(-1).argmin(dim=1)
 
 
 def _nominal_gradient(policy, samples, weight: float) -> tuple[torch.Tensor, torch.Tensor]:
@@ -353,7 +359,7 @@ def test_corrective_noise_trains_moved_states_towards_the_nearest_sample(spiral)
     # AND each moved state is trained towards the nearest sample's velocity minus k times
     # the offset from that sample across it (found here by brute force)
     x = draw.positions[moved]
-    nearest = torch.cdist(x, samples.positions).argmin(dim=1)
+    nearest = _brute_force_nearest(x, samples.positions)
     anchor, velocity = samples.positions[nearest], samples.velocities[nearest]
     direction = velocity / velocity.norm(dim=-1, keepdim=True)
     offset = x - anchor
@@ -368,7 +374,7 @@ def test_corrective_noise_trains_moved_states_towards_the_nearest_sample(spiral)
 
 def test_corrective_noise_searches_a_bounded_set_of_samples(spiral, monkeypatch):
     # GIVEN more samples than the search's bound
-    monkeypatch.setattr(train_module, "CORRECTION_REFERENCES", 100)
+    monkeypatch.setattr(losses_module, "NEAREST_REFERENCES", 100)
     policy = make_policy(spiral, seed=0)
     samples = train_module.make_samples(spiral, policy.normalization, no_split(spiral), window=0)
     samples = samples.to(torch.float64)
@@ -385,7 +391,7 @@ def test_corrective_noise_searches_a_bounded_set_of_samples(spiral, monkeypatch)
     stride = -(-len(samples.positions) // 100)
     references = samples.positions[::stride]
     assert len(references) <= 100
-    nearest = torch.cdist(draw.positions, references).argmin(dim=1) * stride
+    nearest = _brute_force_nearest(draw.positions, references) * stride
     velocity = samples.velocities[nearest]
     offset = draw.positions - samples.positions[nearest]
     expected = velocity - config.noise_correction * train_module._across(offset, velocity)

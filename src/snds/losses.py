@@ -3,11 +3,14 @@ and the alignment of V's descent with the direction of travel."""
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
 from torch import Tensor
 
 from snds.data.demonstrations import Demonstrations, Normalization, Split
@@ -34,7 +37,32 @@ class Samples:
 
     def to(self, dtype: torch.dtype, device: torch.device | str = "cpu") -> Samples:
         """The same samples with another dtype / device."""
-        return Samples(*(t.to(device=device, dtype=dtype) for t in vars(self).values()))
+        tensors = (getattr(self, field.name) for field in dataclasses.fields(self))
+        return Samples(*(t.to(device=device, dtype=dtype) for t in tensors))
+
+    def nearest(self, states: Tensor) -> Tensor:
+        """The index of the training sample nearest to each state (B, n), shape (B,).
+
+        The search runs over at most :data:`NEAREST_REFERENCES` samples, evenly spaced in
+        the samples' order (all of them when there are fewer), through a k-d tree built on
+        the first call: a query costs O(B log N), not O(B N). Euclidean distance in model
+        coordinates; the tree lives on the CPU, so states on another device are copied.
+        """
+        tree, stride = self._reference_tree
+        query = states.detach().to(device="cpu", dtype=torch.float64).numpy()
+        _, index = tree.query(query, k=1)
+        return torch.as_tensor(index * stride, device=states.device)
+
+    @functools.cached_property
+    def _reference_tree(self) -> tuple[cKDTree, int]:
+        stride = max(1, -(-len(self.positions) // NEAREST_REFERENCES))
+        references = self.positions[::stride].detach().to(device="cpu", dtype=torch.float64)
+        return cKDTree(references.numpy()), stride
+
+
+#: The most training samples :meth:`Samples.nearest` searches (evenly spaced in the samples'
+#: order), so the cost of building its tree does not grow with the data.
+NEAREST_REFERENCES = 8192
 
 
 def make_samples(

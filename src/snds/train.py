@@ -68,13 +68,13 @@ class TrainConfig:
         noise_correction: A gain k per unit of model time that pulls states back onto the
             demonstrated paths. A share (``correction_share``) of each batch's states is
             moved by further Gaussian offsets of standard deviation ``correction_noise``
-            (on top of the position noise); each moved state :math:`\tilde x` is trained towards
-            :math:`v_j - k (\tilde x - x_j)_\perp`, with :math:`x_j` the reference sample
-            nearest to it, :math:`v_j` its velocity and :math:`\perp` the part across
-            :math:`v_j` (all of it where :math:`v_j = 0`). The nearest sample, not the one
-            the state was moved from: a state that lands on a neighbouring demonstration
-            learns that demonstration's velocity, so close demonstrations do not contradict
-            each other (0: off).
+            (on top of the position noise); each moved state :math:`\tilde x` is trained
+            towards :math:`v_j - k (\tilde x - x_j)_\perp`, with :math:`x_j` the training
+            sample nearest to it (:meth:`Samples.nearest`), :math:`v_j` its velocity and
+            :math:`\perp` the part across :math:`v_j` (all of it where :math:`v_j = 0`). The
+            nearest sample, not the one the state was moved from: a state that lands on a
+            neighbouring demonstration learns that demonstration's velocity, so close
+            demonstrations do not contradict each other (0: off).
         correction_noise: The standard deviation of those offsets (model coordinates).
         correction_share: The share of each batch's states that is moved and corrected, in
             [0, 1].
@@ -661,11 +661,6 @@ def _draw_step(
     return inputs
 
 
-#: The most training samples :func:`_corrected` searches for the nearest one (evenly spaced
-#: in the samples' order), so a step's cost does not grow with the data.
-CORRECTION_REFERENCES = 8192
-
-
 def _corrected(
     x: torch.Tensor,
     v: torch.Tensor,
@@ -674,13 +669,11 @@ def _corrected(
     generator: torch.Generator,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """A batch (B, n) with a share of its states moved off the data and their velocities
-    corrected towards the nearest reference sample (see ``TrainConfig.noise_correction``)."""
+    corrected towards the nearest training sample (see ``TrainConfig.noise_correction``)."""
     chosen = torch.rand(len(x), generator=generator).to(x.device) < config.correction_share
     offsets = config.correction_noise * torch.randn(x.shape, generator=generator).to(x)
     moved = x[chosen] + offsets[chosen]
-    stride = max(1, -(-len(samples.positions) // CORRECTION_REFERENCES))
-    references = samples.positions[::stride]
-    nearest = torch.cdist(moved, references).argmin(dim=1) * stride
+    nearest = samples.nearest(moved)
     anchor, velocity = samples.positions[nearest], samples.velocities[nearest]
     target = velocity - config.noise_correction * _across(moved - anchor, velocity)
     x, v = x.clone(), v.clone()
