@@ -39,12 +39,13 @@ import numpy as np
 import torch
 from _readme import write_readme_section
 
+from snds.benchmark import MOTION_GROUPS
 from snds.data import load_demonstrations, load_lasa
 from snds.io import to_jsonable
 from snds.models import load_model
 from snds.obstacles import Box, Scene, Sphere, check_obstacles
 
-PAPER8 = ["Sine", "PShape", "Worm", "GShape", "NShape", "DoubleBendedLine", "CShape", "Angle"]
+PAPER8 = list(MOTION_GROUPS["paper8"])
 FRACTIONS = {1: (0.5,), 2: (0.35, 0.65), 3: (0.3, 0.5, 0.7)}
 RADIUS, MARGIN = 0.08, 0.02
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
