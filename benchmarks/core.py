@@ -23,6 +23,7 @@ import datetime
 import json
 import os
 import platform
+import tempfile
 import time
 from pathlib import Path
 
@@ -63,7 +64,8 @@ def run_one(motion: str, seed: int, overrides: dict[str, object], quick: bool) -
     torch.set_num_threads(1)
     from snds.data import Normalization, load_lasa, split_samples
     from snds.evaluate import evaluate
-    from snds.policy import PolicyConfig, StablePolicy
+    from snds.plotting import plot_all
+    from snds.policy import PolicyConfig, StablePolicy, float64_copy
     from snds.stability import CheckConfig
     from snds.train import TrainConfig, fit
 
@@ -84,6 +86,12 @@ def run_one(motion: str, seed: int, overrides: dict[str, object], quick: bool) -
     sizes = {"rollouts": 200, "samples": 10_000} if quick else {}
     metrics = evaluate(policy, demos, split, check=CheckConfig(seed=seed, **sizes))
     check_seconds, check_cpu = time.perf_counter() - wall, time.process_time() - cpu
+    # The pictures snds train --plot writes, timed as the second half of issue 18's bar on
+    # what a run spends after training (the check plus the plots).
+    wall, cpu = time.perf_counter(), time.process_time()
+    with tempfile.TemporaryDirectory() as folder:
+        plot_all(float64_copy(policy).eval(), demos, folder, history=result.history)
+    plot_seconds, plot_cpu = time.perf_counter() - wall, time.process_time() - cpu
     stability = metrics.pop("stability")
     return {
         "motion": motion,
@@ -92,6 +100,8 @@ def run_one(motion: str, seed: int, overrides: dict[str, object], quick: bool) -
         "train_cpu_seconds": round(train_cpu, 2),
         "check_seconds": round(check_seconds, 2),
         "check_cpu_seconds": round(check_cpu, 2),
+        "plot_seconds": round(plot_seconds, 2),
+        "plot_cpu_seconds": round(plot_cpu, 2),
         "steps": result.steps,
         "restarts": result.restarts,
         **{k: v for k, v in metrics.items() if isinstance(v, float)},
@@ -108,10 +118,10 @@ def summarise(rows: list[dict], motions: list[str]) -> str:
     import numpy as np
 
     lines = [
-        "| motion | train s (CPU s) | check s | velocity MSE (paper scale, test) "
+        "| motion | train s (CPU s) | check s | plots s | velocity MSE (paper scale, test) "
         "| paper SNDS MSE | DTW (paper scale) | DTW bar (1.1x before) | converged "
         "| decrease violations |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for motion in motions:
         mine = [r for r in rows if r["motion"] == motion]
@@ -122,9 +132,11 @@ def summarise(rows: list[dict], motions: list[str]) -> str:
             values = np.array([r[key] for r in mine], dtype=float)
             return f"{values.mean():{fmt}} ± {values.std():{fmt}}"
 
+        # Rows of results files from before the plots were timed have none.
+        plots = stat("plot_seconds", ".1f") if all("plot_seconds" in r for r in mine) else "-"
         lines.append(
             f"| {motion} | {stat('train_seconds', '.1f')} ({stat('train_cpu_seconds', '.1f')}) "
-            f"| {stat('check_seconds', '.1f')} | {stat('velocity_mse_paper', '.4f')} "
+            f"| {stat('check_seconds', '.1f')} | {plots} | {stat('velocity_mse_paper', '.4f')} "
             f"| {PAPER_MSE.get(motion, float('nan')):.4f} | {stat('dtw_paper', '.3f')} "
             f"| {1.1 * DTW_BEFORE.get(motion, float('nan')):.3f} "
             f"| {min(r['converged_fraction'] for r in mine):.3f} (min) "
@@ -208,9 +220,13 @@ def header_line(meta: dict, rows: list[dict]) -> str:
     """The sentence above the table: where, how, and the training and check seconds."""
     import numpy as np
 
-    def spread(key: str) -> str:
-        values = np.array([r[key] for r in rows], dtype=float)
+    def spread(*keys: str) -> str:
+        values = np.array([sum(r[key] for key in keys) for r in rows], dtype=float)
         return f"median {np.median(values):.1f} s (max {values.max():.1f})"
+
+    after = ""
+    if all("plot_seconds" in r for r in rows):
+        after = f"; the check and the plots together wall {spread('check_seconds', 'plot_seconds')}"
 
     load = meta.get("load_average")
     busy = f" (load average {load[0]:.1f} at the end)" if load else ""
@@ -220,7 +236,7 @@ def header_line(meta: dict, rows: list[dict]) -> str:
         f"{busy}; overrides {meta['overrides'] or 'none'}"
         f"{'; quick check' if meta.get('quick') else ''}. Training wall {spread('train_seconds')}, "
         f"CPU {spread('train_cpu_seconds')}; check wall {spread('check_seconds')}, CPU "
-        f"{spread('check_cpu_seconds')}."
+        f"{spread('check_cpu_seconds')}{after}."
     )
 
 

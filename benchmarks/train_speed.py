@@ -25,7 +25,7 @@ Variants:
 * ``batch16``: a batch of 16: what a step costs that is not proportional to the batch.
 * ``batch256``, ``penalty8``: the default with ``batch_size=256`` / ``penalty_every=8``.
 * ``warp4``: four coupling layers instead of six; ``warpfeatures32``: 32 random features
-  per coupling layer instead of 64.
+  per coupling layer instead of 64; ``warp4-features32``, ``warp4-features48``: both.
 * ``batch256-warpfeatures32``, ``batch256-steps1200``: combinations (the last one's full
   fit is 1,200 steps).
 * ``compiled`` (with ``--compile``): the step's loss under ``torch.compile``; its first
@@ -143,6 +143,8 @@ VARIANTS: dict[str, tuple[dict, dict, Callable[[], contextlib.AbstractContextMan
     "penalty8": ({}, {"penalty_every": 8}, _nothing),
     "warp4": ({"warp_layers": 4}, {}, _nothing),
     "warpfeatures32": ({"warp_features": 32}, {}, _nothing),
+    "warp4-features32": ({"warp_layers": 4, "warp_features": 32}, {}, _nothing),
+    "warp4-features48": ({"warp_layers": 4, "warp_features": 48}, {}, _nothing),
     "batch256-warpfeatures32": ({"warp_features": 32}, {"batch_size": 256}, _nothing),
     "batch256-steps1200": ({}, {"batch_size": 256, "steps": 1200}, _nothing),
 }

@@ -46,7 +46,8 @@ def test_train_writes_model_metrics_and_config(trained):
     assert description["train"]["steps"] == 150
     assert description["train"]["shape_weight"] == 0.0  # off for position models
     # the warped V and its training defaults, recorded as numbers
-    assert description["policy"]["warp_layers"] == 6
+    assert description["policy"]["warp_layers"] == 4
+    assert description["policy"]["warp_features"] == 32
     assert description["train"]["position_noise"] == 0.0015
     assert description["train"]["warp_weight"] == 0.001
     assert description["train"]["nominal_weight"] == 0.01

@@ -23,7 +23,7 @@ from snds.nn import MLP, EuclideanizingFlow, Lyapunov, WarpedLyapunov
 from snds.spaces import Euclidean, Space
 
 #: Coupling layers of V's warp when :attr:`PolicyConfig.warp_layers` is None and n >= 2.
-DEFAULT_WARP_LAYERS = 6
+DEFAULT_WARP_LAYERS = 4
 
 
 #: Where anchors sit before :meth:`StablePolicy.set_anchors`: far enough (model coordinates)
@@ -134,7 +134,7 @@ class PolicyConfig:
     data_radius: float = 0.1
     anchors: int = 256
     warp_layers: int | None = None
-    warp_features: int = 64
+    warp_features: int = 32
     warp_scale: float = 1.0
     rectifier: str = "relu"
     stable: bool = True

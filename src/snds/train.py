@@ -117,7 +117,7 @@ class TrainConfig:
     position_noise: float = 0.0015
     noise_correction: float = 10.0
     correction_noise: float = 0.005
-    correction_share: float = 0.25
+    correction_share: float = 0.1
     shape_weight: float = 0.0
     warp_weight: float = 0.001
     align_weight: float = 0.1

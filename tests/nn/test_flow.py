@@ -95,7 +95,7 @@ def test_warp_needs_two_dimensions_and_valid_sizes(spiral):
             PolicyConfig(**bad)
 
 
-def test_default_warp_is_six_layers_for_positions_and_none_elsewhere(spiral):
+def test_default_warp_is_four_layers_for_positions_and_none_elsewhere(spiral):
     from snds.data import Normalization
     from snds.policy import DEFAULT_WARP_LAYERS
     from snds.se3 import PoseConfig
@@ -108,9 +108,9 @@ def test_default_warp_is_six_layers_for_positions_and_none_elsewhere(spiral):
     # THEN a position policy of dimension >= 2 gets the warp and stores the number it took
     for dim in (2, 3):
         policy = built(dim)
-        assert policy.config.warp_layers == DEFAULT_WARP_LAYERS == 6
+        assert policy.config.warp_layers == DEFAULT_WARP_LAYERS == 4
         assert isinstance(policy.lyapunov, WarpedLyapunov)
-        assert len(policy.lyapunov.warp.layers) == 6
+        assert len(policy.lyapunov.warp.layers) == 4
     # and 1-D states, behavioural cloning and pose policies keep the convex V
     for policy in (built(1), built(2, stable=False)):
         assert policy.config.warp_layers == 0 and isinstance(policy.lyapunov, Lyapunov)
