@@ -136,7 +136,7 @@ def summarise(rows: list[dict], motions: list[str]) -> str:
         plots = stat("plot_seconds", ".1f") if all("plot_seconds" in r for r in mine) else "-"
         lines.append(
             f"| {motion} | {stat('train_seconds', '.1f')} ({stat('train_cpu_seconds', '.1f')}) "
-            f"| {stat('check_seconds', '.1f')} | {plots} | {stat('velocity_mse_paper', '.4f')} "
+            f"| {stat('check_seconds', '.1f')} | {plots} | {stat('velocity_mse_paper', '.5f')} "
             f"| {PAPER_MSE.get(motion, float('nan')):.4f} | {stat('dtw_paper', '.3f')} "
             f"| {1.1 * DTW_BEFORE.get(motion, float('nan')):.3f} "
             f"| {min(r['converged_fraction'] for r in mine):.3f} (min) "
@@ -228,11 +228,12 @@ def header_line(meta: dict, rows: list[dict]) -> str:
     if all("plot_seconds" in r for r in rows):
         after = f"; the check and the plots together wall {spread('check_seconds', 'plot_seconds')}"
 
+    together = "one run at a time" if meta["jobs"] == 1 else f"{meta['jobs']} runs side by side"
     load = meta.get("load_average")
     busy = f" (load average {load[0]:.1f} at the end)" if load else ""
     return (
         f"Measured {meta['date']} at {meta.get('commit', 'an unrecorded commit')} on "
-        f"{meta['machine']}; {meta['jobs']} runs side by side, one torch thread each"
+        f"{meta['machine']}; {together}, one torch thread each"
         f"{busy}; overrides {meta['overrides'] or 'none'}"
         f"{'; quick check' if meta.get('quick') else ''}. Training wall {spread('train_seconds')}, "
         f"CPU {spread('train_cpu_seconds')}; check wall {spread('check_seconds')}, CPU "
