@@ -306,7 +306,10 @@ class _FusedStable(torch.nn.Module):
         self.anchored = exact.anchors is not None
         if self.anchored:
             anchors = exact.anchors.to(torch.float64)
-            buffer("anchors_t", anchors.T)
+            # min_j |z - a_j|^2 = |z|^2 + min_j (|a_j|^2 - 2 z . a_j): the bracket is one
+            # product with a bias (-2 is exact in any precision), and |z|^2 is added after the
+            # minimum, to a column instead of to every (state, anchor) pair.
+            buffer("anchors_t", -2.0 * anchors.T)
             buffer("anchors_sq", (anchors * anchors).sum(-1))
             self.inverse_width = 1.0 / (2.0 * config.data_radius**2)
             self.data_gain = speed * config.data_rate_drop
@@ -379,10 +382,10 @@ class _FusedStable(torch.nn.Module):
             self.rate_out,
         )
         if self.anchored:
-            squared = (z * z).sum(-1, keepdim=True) - 2.0 * (z @ self.anchors_t)
-            nearest = torch.clamp_min(
-                torch.amin(squared + self.anchors_sq, dim=-1, keepdim=True), 0.0
+            closest = torch.amin(
+                torch.addmm(self.anchors_sq, z, self.anchors_t), dim=-1, keepdim=True
             )
+            nearest = torch.clamp_min(closest + (z * z).sum(-1, keepdim=True), 0.0)
             rate = rate - self.data_gain * torch.exp(-self.inverse_width * nearest)
         norm2 = (grad_v * grad_v).sum(-1, keepdim=True)
         excess = torch.relu((grad_v * field).sum(-1, keepdim=True) + value * rate)
