@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import re
 import statistics
 import time
 from collections import defaultdict
@@ -41,13 +42,16 @@ HERE = Path(__file__).resolve().parent
 
 
 def parse_variant(text: str) -> tuple[str, dict[str, object]]:
-    """``NAME:KEY=VALUE,...`` -> (name, {key: value}); values are JSON where they parse."""
+    """``NAME:KEY=VALUE,...`` -> (name, {key: value}); values are JSON where they parse (a
+    list such as ``hidden=[64,64]`` keeps its commas)."""
     name, _, pairs = text.partition(":")
     overrides: dict[str, object] = {}
-    for pair in filter(None, pairs.split(",")):
-        key, sep, value = pair.partition("=")
-        if not sep:
-            raise SystemExit(f"screen.py: variant {text!r}: {pair!r} is not KEY=VALUE")
+    for match in re.finditer(r"([^,=]*)(=?)(\[[^\]]*\]|[^,]*)", pairs):
+        key, sep, value = match.groups()
+        if not (key or sep or value):
+            continue
+        if not sep or not key:
+            raise SystemExit(f"screen.py: variant {text!r}: {match.group(0)!r} is not KEY=VALUE")
         try:
             overrides[key] = json.loads(value)
         except json.JSONDecodeError:
