@@ -93,6 +93,7 @@ def run(motion: str, seed: int, demos: int | None, name: str, overrides: dict) -
         "dtw_paper": metrics["dtw_paper"],
         "frechet_paper": metrics["frechet_paper"],
         "final_loss": statistics.fmean(result.history[-50:]),
+        "restarts": result.restarts,
         "train_cpu_seconds": round(seconds, 2),
     }
 
