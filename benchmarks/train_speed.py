@@ -24,10 +24,10 @@ Variants:
   ``no-correction``: the default with ``noise_correction=0``.
 * ``batch16``: a batch of 16: what a step costs that is not proportional to the batch.
 * ``batch256``, ``penalty8``: the default with ``batch_size=256`` / ``penalty_every=8``.
-* ``warp4``: four coupling layers instead of six; ``warpfeatures32``: 32 random features
-  per coupling layer instead of 64; ``warp4-features32``, ``warp4-features48``: both.
-* ``batch256-warpfeatures32``, ``batch256-steps1200``: combinations (the last one's full
-  fit is 1,200 steps).
+* ``warp6-features64`` (the previous default, CHANGELOG), ``warp4-features64``,
+  ``warp4-features48``, ``warp3``: other sizes of V's warp than the default's 4 coupling layers
+  of 32 random features.
+* ``batch256-steps1200``: a combination (its full fit is 1,200 steps).
 * ``compiled`` (with ``--compile``): the step's loss under ``torch.compile``; its first
   call's compile time is reported separately (the FX graph cache under
   ``$TORCHINDUCTOR_CACHE_DIR`` makes a second process faster).
@@ -141,11 +141,10 @@ VARIANTS: dict[str, tuple[dict, dict, Callable[[], contextlib.AbstractContextMan
     "batch256": ({}, {"batch_size": 256}, _nothing),
     "batch16": ({}, {"batch_size": 16}, _nothing),
     "penalty8": ({}, {"penalty_every": 8}, _nothing),
-    "warp4": ({"warp_layers": 4}, {}, _nothing),
-    "warpfeatures32": ({"warp_features": 32}, {}, _nothing),
-    "warp4-features32": ({"warp_layers": 4, "warp_features": 32}, {}, _nothing),
+    "warp6-features64": ({"warp_layers": 6, "warp_features": 64}, {}, _nothing),
+    "warp4-features64": ({"warp_layers": 4, "warp_features": 64}, {}, _nothing),
     "warp4-features48": ({"warp_layers": 4, "warp_features": 48}, {}, _nothing),
-    "batch256-warpfeatures32": ({"warp_features": 32}, {"batch_size": 256}, _nothing),
+    "warp3": ({"warp_layers": 3}, {}, _nothing),
     "batch256-steps1200": ({}, {"batch_size": 256, "steps": 1200}, _nothing),
 }
 
