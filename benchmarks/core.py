@@ -3,7 +3,8 @@
 Trains every (motion, seed) with all 7 demonstrations and a random 0.8 / 0.2 split of the
 samples, evaluates on the test samples, and checks stability with the library's default
 check (random starts from a box 3x the extent, decrease-condition samples in a box 10x the
-extent). Each run has one torch thread; ``--jobs`` runs run side by side in worker
+extent), then times the pictures ``snds train --plot`` writes (``snds.plotting.plot_all``,
+into a temporary folder). Each run has one torch thread; ``--jobs`` runs run side by side in worker
 processes (default: all cores; ``--jobs 1`` runs them one after the other in this process).
 
     python benchmarks/core.py                       # 8 motions x 3 seeds, table into README
