@@ -71,8 +71,8 @@ def _reference() -> Iterator[None]:
 def _torch_optimizer() -> Iterator[None]:
     clip, step = snds.train.clip_gradients, snds.train.adam_step
 
-    def torch_clip(module: torch.nn.Module, max_norm: float) -> torch.Tensor:
-        return torch.nn.utils.clip_grad_norm_(module.parameters(), max_norm, foreach=True)
+    def torch_clip(parameters: list[torch.Tensor], max_norm: float) -> torch.Tensor:
+        return torch.nn.utils.clip_grad_norm_(parameters, max_norm, foreach=True)
 
     def torch_step(optimizer: torch.optim.Adam, lr: float) -> None:
         for group in optimizer.param_groups:

@@ -221,6 +221,23 @@ def test_data_kernel_lowers_the_rate_on_the_data_only_and_the_decrease_holds(spi
     torch.testing.assert_close(loaded.decay(v, x).double(), policy.decay(v, x))
 
 
+def test_data_kernel_equals_the_brute_force_nearest_anchor(spiral):
+    # k(x) = exp(-d^2 / 2r^2) with d the distance to the nearest of 64 anchors, by all the
+    # differences, at random states, on anchors (d = 0) and far away; float64 and float32
+    config = dataclasses.replace(SMALL, anchors=64, data_radius=0.3)
+    policy = make_policy(spiral, config, seed=1)
+    generator = torch.Generator().manual_seed(3)
+    policy.set_anchors(torch.randn(200, 2, generator=generator, dtype=torch.float64))
+    x = torch.cat([torch.randn(500, 2, generator=generator, dtype=torch.float64), policy.anchors])
+    x = torch.cat([x, 40 * x[:36]]).reshape(-1, 3, 2)  # 600 states
+    for dtype, tolerance in ((torch.float64, 1e-12), (torch.float32, 1e-5)):
+        d2 = (x.to(dtype)[..., None, :] - policy.anchors.to(dtype)).square().sum(-1).amin(-1)
+        expected = torch.exp(-d2 / (2 * 0.3**2))
+        kernel = policy._data_kernel(x.to(dtype))
+        assert kernel.shape == x.shape[:-1] and kernel.dtype == dtype
+        torch.testing.assert_close(kernel, expected, atol=tolerance, rtol=0)
+
+
 def test_fit_places_the_anchors_on_the_training_states(spiral):
     from snds.data import split_samples
     from snds.train import TrainConfig, fit

@@ -292,8 +292,8 @@ def test_direct_adam_and_clipping_are_torchs_bit_for_bit(spiral, monkeypatch, dt
     for reference in (False, True):
         if reference:
 
-            def clip(module, max_norm):
-                return torch.nn.utils.clip_grad_norm_(module.parameters(), max_norm, foreach=True)
+            def clip(parameters, max_norm):
+                return torch.nn.utils.clip_grad_norm_(parameters, max_norm, foreach=True)
 
             def step(optimizer, lr):
                 for group in optimizer.param_groups:

@@ -234,7 +234,7 @@ def _fit_group(fits: list[_Fit], *, progress: bool) -> None:
             # fit is left out, as fit skips its backward pass.
             (losses if len(healthy) == len(active) else losses[healthy]).sum().backward()
         for i in healthy:
-            norm = clip_gradients(active[i].policy, config.grad_clip)
+            norm = clip_gradients(list(active[i].policy.parameters()), config.grad_clip)
             # As in fit: a NaN gradient is a diverged step too.
             diverged[i] = not bool(torch.isfinite(norm))
         stopped = []

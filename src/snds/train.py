@@ -8,6 +8,7 @@ import json
 import math
 import sys
 import time
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
@@ -218,18 +219,19 @@ def _adam(policy: Policy, config: TrainConfig) -> torch.optim.Adam:
     return torch.optim.Adam(policy.parameters(), lr=config.lr, fused=True)
 
 
-def clip_gradients(module: torch.nn.Module, max_norm: float) -> torch.Tensor:
-    """Scales the gradients of a module's parameters to a total 2-norm of at most
-    ``max_norm``; returns the norm before clipping (NaN or inf if a gradient is).
+def clip_gradients(parameters: Sequence[torch.Tensor], max_norm: float) -> torch.Tensor:
+    """Scales the gradients of ``parameters`` to a total 2-norm of at most ``max_norm``;
+    returns the norm before clipping (NaN or inf if a gradient is).
 
-    The same operations, in the same order, as ``torch.nn.utils.clip_grad_norm_(...,
-    foreach=True)`` on parameters of one device and dtype (so the same bits), without its
-    per-call grouping work; other parameter sets go through it.
+    The same operations, in the same order, as ``torch.nn.utils.clip_grad_norm_(parameters,
+    max_norm, foreach=True)`` on parameters of one device and dtype (so the same bits), without
+    its per-call grouping work; other parameter sets go through it. Taking the parameters as a
+    list (not a module) spares a walk of the module tree on every step.
     """
-    grads = [p.grad for p in module.parameters() if p.grad is not None]
+    grads = [p.grad for p in parameters if p.grad is not None]
     kinds = {(g.device, g.dtype) for g in grads}
     if len(kinds) != 1 or any(g.is_sparse for g in grads):
-        return torch.nn.utils.clip_grad_norm_(module.parameters(), max_norm, foreach=True)
+        return torch.nn.utils.clip_grad_norm_(parameters, max_norm, foreach=True)
     with torch.no_grad():
         total = torch.linalg.vector_norm(torch.stack(torch._foreach_norm(grads, 2.0)), 2.0)
         torch._foreach_mul_(grads, torch.clamp(max_norm / (total + 1e-6), max=1.0))
@@ -343,6 +345,7 @@ def fit(
     policy.set_anchors(samples.positions)
     generator = torch.Generator().manual_seed(config.seed)
     optimizer = _adam(policy, config)
+    parameters = list(policy.parameters())  # the same tensors after a restart's reload
     state = _State(good=copy.deepcopy(policy.state_dict()))
     identity = _identity(policy, config, samples)
     if checkpoint is not None and Path(checkpoint).is_file():
@@ -369,7 +372,7 @@ def fit(
         if not diverged:
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
-            norm = clip_gradients(policy, config.grad_clip)
+            norm = clip_gradients(parameters, config.grad_clip)
             # A finite loss can still have a NaN gradient (a division that underflows in its
             # backward pass); stepping on it would make every weight NaN, the saved good
             # state included.

@@ -62,4 +62,10 @@ class _SinCos(torch.autograd.Function):
 def sincos(angles: Tensor) -> tuple[Tensor, Tensor]:
     """sin and cos of ``angles`` (any shape), each computed once in the forward pass and
     reused by the backward pass; the values are those of ``torch.sin`` and ``torch.cos``."""
-    return _SinCos.apply(angles)
+    if torch._C._are_functorch_transforms_active():
+        return _SinCos.apply(angles)
+    # Outside torch.func transforms, ``Function.apply`` binds the arguments to ``forward``'s
+    # signature (``inspect.signature``) on every call before it calls the autograd engine's
+    # ``apply``; with one positional tensor there is nothing to bind, so this calls the
+    # engine's directly, as ``Function.apply`` itself does after binding.
+    return super(torch.autograd.Function, _SinCos).apply(angles)
