@@ -281,7 +281,9 @@ class _FusedStable(torch.nn.Module):
         gradient_bias = icnn.linear_out + a * (out[:, None] * last).sum(0)
         buffer("gradient_bias", gradient_bias[None])
         buffer("quadratic_eye", 2 * convex.quadratic * torch.eye(n, dtype=torch.float64))
-        self.quadratic = float(convex.quadratic)
+        # d |e|^2 as the product of e * e with a column of d (one node less than a sum and a
+        # product with d).
+        buffer("quadratic_column", torch.full((n, 1), float(convex.quadratic), dtype=torch.float64))
         if depth > 1:
             buffer("back_prev", (1 - a) * out[:, None] * weights[-1])
             buffer("back_prev_bias", (a * (out[:, None] * weights[-1]).sum(0))[None])
@@ -306,13 +308,18 @@ class _FusedStable(torch.nn.Module):
         self.anchored = exact.anchors is not None
         if self.anchored:
             anchors = exact.anchors.to(torch.float64)
-            # min_j |z - a_j|^2 = |z|^2 + min_j (|a_j|^2 - 2 z . a_j): the bracket is one
-            # product with a bias (-2 is exact in any precision), and |z|^2 is added after the
-            # minimum, to a column instead of to every (state, anchor) pair.
-            buffer("anchors_t", -2.0 * anchors.T)
-            buffer("anchors_sq", (anchors * anchors).sum(-1))
-            self.inverse_width = 1.0 / (2.0 * config.data_radius**2)
-            self.data_gain = speed * config.data_rate_drop
+            # With w = 1 / (2 r^2), the kernel's exponent -w min_j |z - a_j|^2 is
+            # max_j (2 w z . a_j - w |a_j|^2) - w |z|^2: the bracket is one product with a bias,
+            # and w |z|^2, a product of z * z with a column of w, is subtracted after the
+            # maximum, from a column instead of from every (state, anchor) pair.
+            width = 1.0 / (2.0 * config.data_radius**2)
+            buffer("anchors_t", 2.0 * width * anchors.T)
+            buffer("anchors_sq", -width * (anchors * anchors).sum(-1))
+            buffer("width_column", torch.full((n, 1), width, dtype=torch.float64))
+            # the kernel enters the rate through a product with -L/T rho_drop (a 1 x 1 matrix)
+            buffer(
+                "data_gain", torch.full((1, 1), -speed * config.data_rate_drop, dtype=torch.float64)
+            )
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         z = torch.cat([(x - self.center) / self.length, self.zero_row])  # the target last
@@ -366,9 +373,9 @@ class _FusedStable(torch.nn.Module):
                     back = delta @ getattr(self, f"back_prev{k}")
         # V_c(e) = min(Bregman + d |e|^2, grad V_c . e), as in Lyapunov.value_and_grad.
         g0, grad0 = g[-1:], grad[-1:]
-        bregman = torch.relu(g - g0 - (e * grad0).sum(-1, keepdim=True))
+        bregman = torch.relu(g - g0 - e @ grad0.T)
         grad_v = grad - grad0
-        value = bregman + self.quadratic * (e * e).sum(-1, keepdim=True)
+        value = bregman + (e * e) @ self.quadratic_column
         value = torch.relu(torch.minimum(value, (grad_v * e).sum(-1, keepdim=True)))
         # The warp, backward: J_l^T g = g + C_l^T g.
         for index in range(self.layers - 1, -1, -1):
@@ -382,11 +389,11 @@ class _FusedStable(torch.nn.Module):
             self.rate_out,
         )
         if self.anchored:
-            closest = torch.amin(
+            closest = torch.amax(
                 torch.addmm(self.anchors_sq, z, self.anchors_t), dim=-1, keepdim=True
             )
-            nearest = torch.clamp_min(closest + (z * z).sum(-1, keepdim=True), 0.0)
-            rate = rate - self.data_gain * torch.exp(-self.inverse_width * nearest)
+            exponent = torch.clamp_max(closest - (z * z) @ self.width_column, 0.0)
+            rate = torch.addmm(rate, torch.exp(exponent), self.data_gain)
         norm2 = (grad_v * grad_v).sum(-1, keepdim=True)
         excess = torch.relu((grad_v * field).sum(-1, keepdim=True) + value * rate)
         safe = torch.where(norm2 > 0, norm2, 1.0)
