@@ -324,11 +324,13 @@ def write_results(rows: Sequence[dict], args: argparse.Namespace, settings: Swee
     atomic_write(results / "rows.csv", write_csv)
     machine = f"{platform.machine()}, {os.cpu_count()} cores, {platform.platform()}"
     recipe = "" if args.recipe == "default" else f" --recipe {args.recipe}"
+    jobs = args.jobs or os.cpu_count() or 1
+    flags = f"--seeds {args.seeds}{recipe}" + (f" --jobs {args.jobs}" if args.jobs else "")
     header = (
         f"Tables of {datetime.date.today().isoformat()} (a resumed sweep keeps the rows of its "
-        f"earlier runs) on {machine} "
-        f"(`python benchmarks/reliability.py --seeds {args.seeds}{recipe}`), two runs side by "
-        "side, one torch thread each. Bars: held-out velocity error at most "
+        f"earlier runs) on {machine} (`python benchmarks/reliability.py {flags}`), "
+        + ("one run at a time" if jobs == 1 else f"{jobs} runs side by side")
+        + ", one torch thread each. Bars: held-out velocity error at most "
         f"{ACCURACY_BAR:g} of the velocities' mean square, converged 1.0 from "
         f"{settings.rollouts} random starts in the 3x box, 0 violations in {settings.samples:,} "
         f"decrease samples in the 10x box (float64). Per task: `results/{name}/summary.md`; "
