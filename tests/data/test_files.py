@@ -127,17 +127,82 @@ def test_stored_dt_is_used_and_the_estimate_recovers_it(name, tmp_path):
     path = shared_file(name)
     contents = scipy.io.loadmat(path)
     dt = contents["dt"].item()
-    for demo in load_mat(path, max_end_spread=0.5):
+    for demo in load_mat(path, max_end_spread=0.5, gaps="retime"):
         # Every step is the stored one but where samples are missing (see retime_gaps).
         steps = np.diff(demo.times)
         stored = np.isclose(steps, dt, rtol=1e-9)
         assert np.all(stored | (steps > dt)) and stored.mean() > 0.99
+    for demo in load_mat(path, max_end_spread=0.5):
+        # Filled gaps (the default) take steps of at least the stored one, and less than twice.
+        steps = np.diff(demo.times)
+        assert np.all(steps >= dt * (1 - 1e-9)) and np.all(steps < 2 * dt)
     # GIVEN the same demonstrations without their dt
     stripped = tmp_path / name
     scipy.io.savemat(stripped, {"data": contents["data"]})
     # THEN each demonstration's estimated step is the stored one, despite the position jumps
     for demo in load_mat(stripped, max_end_spread=0.5):
         assert demo.dt[0] == pytest.approx(dt, rel=0.01)
+
+
+@pytest.mark.parametrize("name", ["3D_Cshape_top.mat", "3D_viapoint_1.mat", "3D_sink.mat"])
+def test_filled_gaps_make_each_recording_a_continuous_tube(name):
+    path = shared_file(name)
+    kept = load_mat(path, max_end_spread=0.5, gaps="retime")
+    filled = load_mat(path, max_end_spread=0.5)
+
+    def largest_step(demos: Demonstrations) -> float:
+        steps = [np.linalg.norm(np.diff(d.positions, axis=0), axis=1).max() for d in demos]
+        return max(steps) / demos.extent()
+
+    # GIVEN recordings that jump by more than a tenth of the task's extent in one sample
+    assert largest_step(kept) > 0.1
+    # THEN with the dropped samples put back no step is longer than 2 % of it
+    assert largest_step(filled) < 0.02
+    np.testing.assert_array_equal(filled.target, kept.target)
+    for got, recorded in zip(filled, kept, strict=True):
+        # The same start, end and duration, and every recorded sample kept where it was.
+        np.testing.assert_array_equal(got.positions[[0, -1]], recorded.positions[[0, -1]])
+        assert got.duration == pytest.approx(recorded.duration, rel=1e-12)
+        index = np.searchsorted(got.times, recorded.times - 1e-9)
+        np.testing.assert_allclose(got.times[index], recorded.times, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(got.positions[index], recorded.positions, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(got.velocities[index], recorded.velocities, rtol=0, atol=1e-9)
+
+
+def test_fill_gaps_puts_back_the_samples_a_recording_dropped():
+    from snds.data.files import fill_gaps
+
+    # GIVEN an accelerating motion along a parabola, sampled at 0.01 s, 30 samples missing
+    times = 0.01 * np.arange(200)
+    positions = np.stack([times, times**2], axis=1)
+    velocities = np.stack([np.ones_like(times), 2 * times], axis=1)
+    keep = np.r_[0:50, 80:200]
+    got_positions, got_velocities, got_times = fill_gaps(positions[keep], velocities[keep], 0.01)
+    # THEN the gap gets its 30 samples back, where and when the motion was (a cubic Hermite
+    # curve holds a parabola exactly, and the velocities give the gap its 0.31 s exactly)
+    np.testing.assert_allclose(got_times, times, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(got_positions, positions, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(got_velocities, velocities, rtol=0, atol=1e-12)
+    # AND the recorded samples are the recorded ones, bit for bit
+    np.testing.assert_array_equal(got_positions[keep], positions[keep])
+    np.testing.assert_array_equal(got_velocities[keep], velocities[keep])
+
+
+def test_fill_gaps_changes_nothing_without_a_gap():
+    from snds.data.files import fill_gaps
+
+    demo = quadratic_demos(count=1, uneven=False)[0]
+    got_positions, got_velocities, got_times = fill_gaps(demo.positions, demo.velocities, 0.01)
+    np.testing.assert_array_equal(got_positions, demo.positions)
+    np.testing.assert_array_equal(got_velocities, demo.velocities)
+    np.testing.assert_allclose(got_times, 0.01 * np.arange(len(demo.times)), rtol=1e-12)
+
+
+def test_an_unknown_gap_mode_is_refused(tmp_path):
+    path = tmp_path / "demos.mat"
+    scipy.io.savemat(path, {"Data": concatenated(quadratic_demos(uneven=False)), "dt": 0.01})
+    with pytest.raises(DataError, match="unknown gap mode 'drop'"):
+        load_demonstrations(path, gaps="drop")
 
 
 @pytest.mark.parametrize(

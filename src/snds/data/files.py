@@ -24,12 +24,21 @@ from snds.errors import DataError
 DEFAULT_DT = 0.01
 """Time step (seconds) assumed for ``.npz`` files that store neither ``t`` nor ``dt``."""
 
+GAP_MODES = ("fill", "retime")
+"""How :func:`load_mat` treats recording gaps (samples missing from a recording):
+``"fill"`` puts the missing samples back (:func:`fill_gaps`, the default), ``"retime"`` only
+gives the jump the time it took (:func:`retime_gaps`, how files were read before)."""
+
 CSV_HEADER = "demo,t,x1,...,xn[,v1,...,vn]"
 NPZ_KEYS = ("pos", "vel", "t", "dt")
 
 
 def load_demonstrations(
-    path: str | Path, *, max_end_spread: float = MAX_END_SPREAD, select: Sequence[int] | None = None
+    path: str | Path,
+    *,
+    max_end_spread: float = MAX_END_SPREAD,
+    select: Sequence[int] | None = None,
+    gaps: str = "fill",
 ) -> Demonstrations:
     """Loads a demonstrations file, choosing the reader by its extension (see :data:`LOADERS`).
 
@@ -41,20 +50,30 @@ def load_demonstrations(
         select: Keep only these demonstrations (0-based, in this order) before the target
             is chosen: a subset that ends at one point can be used from a file whose
             demonstrations end at several (3D-pick-box ends at two places 0.26 m apart).
+        gaps: How a ``.mat`` file's recording gaps are treated, one of :data:`GAP_MODES` (see
+            :func:`load_mat`). CSV and NPZ files carry their own time stamps; their samples
+            are kept as they are.
 
     Raises:
-        DataError: If the extension is not supported or the file cannot be used.
+        DataError: If the extension is not supported, ``gaps`` is unknown, or the file cannot
+            be used.
     """
     path = Path(path)
     loader = LOADERS.get(path.suffix.lower())
     if loader is None:
         supported = ", ".join(sorted(LOADERS))
         raise DataError(f"{path}: unsupported file type {path.suffix!r} (supported: {supported})")
-    return loader(path, max_end_spread=max_end_spread, select=select)
+    _check_gap_mode(gaps)
+    options = {"gaps": gaps} if loader is load_mat else {}
+    return loader(path, max_end_spread=max_end_spread, select=select, **options)
 
 
 def load_mat(
-    path: str | Path, *, max_end_spread: float = MAX_END_SPREAD, select: Sequence[int] | None = None
+    path: str | Path,
+    *,
+    max_end_spread: float = MAX_END_SPREAD,
+    select: Sequence[int] | None = None,
+    gaps: str = "fill",
 ) -> Demonstrations:
     """Loads demonstrations from a MATLAB file (v4 to v7.2) in one of the LPV-DS layouts.
 
@@ -70,15 +89,24 @@ def load_mat(
     :func:`estimate_time_step`): the velocities are the recorded ones, so the times that make
     them agree with the positions are the ones the demonstrator used.
 
+    A recording that dropped samples jumps by centimetres in one step (every demonstration of
+    the 3-D LPV-DS files does, once, early in the motion). With ``gaps="fill"`` (the default)
+    the missing samples are put back (:func:`fill_gaps`): the demonstration is a continuous
+    tube again, so a policy learns the motion across the gap and a reproduction is compared
+    with the path the arm took, not with a jump. ``gaps="retime"`` keeps the recorded
+    samples and only gives the jump the time it took (:func:`retime_gaps`).
+
     Arguments:
         path: The ``.mat`` file.
         max_end_spread: See :func:`load_demonstrations`.
         select: See :func:`load_demonstrations`.
+        gaps: One of :data:`GAP_MODES`.
 
     Raises:
-        DataError: If the file is missing, unreadable or truncated, lacks ``Data``/``data``, or
-            holds matrices of the wrong shape or with NaN/inf.
+        DataError: If the file is missing, unreadable or truncated, lacks ``Data``/``data``,
+            holds matrices of the wrong shape or with NaN/inf, or ``gaps`` is unknown.
     """
+    _check_gap_mode(gaps)
     path = _existing_file(path)
     with _context(str(path)):
         contents = _read_mat(path)
@@ -87,7 +115,7 @@ def load_mat(
         demos = []
         for i, block in enumerate(blocks):
             with _context(f"demonstration {i}"):
-                demos.append(_mat_demonstration(block, dt))
+                demos.append(_mat_demonstration(block, dt, gaps))
         return _assemble(demos, path.stem, max_end_spread, select)
 
 
@@ -346,7 +374,12 @@ def _split_at_rest(data: np.ndarray) -> list[np.ndarray]:
     return blocks
 
 
-def _mat_demonstration(block: np.ndarray, dt: float | None) -> Demonstration:
+def _check_gap_mode(gaps: str) -> None:
+    if gaps not in GAP_MODES:
+        raise DataError(f"unknown gap mode {gaps!r}; choose from {list(GAP_MODES)}")
+
+
+def _mat_demonstration(block: np.ndarray, dt: float | None, gaps: str) -> Demonstration:
     if block.ndim != 2 or block.shape[0] % 2 or block.shape[0] == 0:
         raise DataError(f"expected a 2n x T matrix (positions then velocities), got {block.shape}")
     n = block.shape[0] // 2
@@ -354,21 +387,23 @@ def _mat_demonstration(block: np.ndarray, dt: float | None) -> Demonstration:
     # Validates shapes and finiteness before estimating the time step from them.
     Demonstration(positions, velocities, np.arange(len(positions), dtype=np.float64))
     step = estimate_time_step(positions, velocities) if dt is None else dt
+    if gaps == "fill":
+        return Demonstration(*fill_gaps(positions, velocities, step))
     return Demonstration(positions, velocities, retime_gaps(positions, velocities, step))
 
 
-def retime_gaps(positions: np.ndarray, velocities: np.ndarray, dt: float) -> np.ndarray:
-    r"""Sample times at a fixed step, with a longer step wherever samples are missing.
+def gap_durations(positions: np.ndarray, velocities: np.ndarray, dt: float) -> np.ndarray:
+    r"""The time each step of a recording at a fixed step took, longer where samples are
+    missing.
 
     A recording that drops samples shows a position jump that its velocities cannot explain:
     every demonstration of the 3-D LPV-DS files has one such gap, 1-17 cm in one step early in
     the motion, after which the motion goes on from the new position (a step, not a spike).
-    At a fixed step the rollout from the recorded start can never make that jump, so it lags
-    the demonstration by the gap for the rest of the motion. A step whose increment is more
-    than 5 times what the trapezoidal rule :math:`\Delta t (v_k + v_{k+1}) / 2` explains (and
-    more than 1e-3 of the motion's extent) gets the time that the velocities need to cover
-    it, :math:`\Delta t_k = \Delta x \cdot ar v / \|ar v\|^2` (least squares), if that is
-    longer than ``dt``.
+    A step whose increment is more than 5 times what the trapezoidal rule
+    :math:`\Delta t (v_k + v_{k+1}) / 2` explains (and more than 1e-3 of the motion's extent)
+    gets the time that the velocities need to cover it,
+    :math:`\Delta t_k = \Delta x \cdot \bar v / \|\bar v\|^2` (least squares), if that is
+    longer than ``dt``; every other step takes ``dt``.
 
     Arguments:
         positions: Positions, shape (T, n).
@@ -376,7 +411,7 @@ def retime_gaps(positions: np.ndarray, velocities: np.ndarray, dt: float) -> np.
         dt: The nominal time step.
 
     Returns:
-        Strictly increasing times starting at 0, shape (T,).
+        The duration of each step, shape (T - 1,): ``dt``, or longer across a gap.
     """
     steps = np.full(len(positions) - 1, dt)
     increments = np.diff(positions, axis=0)
@@ -389,7 +424,92 @@ def retime_gaps(positions: np.ndarray, velocities: np.ndarray, dt: float) -> np.
         needed = np.sum(increments * mean_velocities, axis=1) / speed2
     gaps &= np.isfinite(needed) & (needed > dt)
     steps[gaps] = needed[gaps]
-    return np.concatenate([[0.0], np.cumsum(steps)])
+    return steps
+
+
+def retime_gaps(positions: np.ndarray, velocities: np.ndarray, dt: float) -> np.ndarray:
+    """Sample times at a fixed step, with a longer step wherever samples are missing (the
+    durations of :func:`gap_durations`).
+
+    At a fixed step the rollout from the recorded start can never make a gap's jump, so it
+    would lag the demonstration by the gap for the rest of the motion; with the gap's own
+    duration it need not. The samples stay as recorded, so the demonstration still jumps
+    across the gap: :func:`fill_gaps` puts the missing samples back.
+
+    Arguments:
+        positions: Positions, shape (T, n).
+        velocities: Recorded velocities, shape (T, n).
+        dt: The nominal time step.
+
+    Returns:
+        Strictly increasing times starting at 0, shape (T,).
+    """
+    return np.concatenate([[0.0], np.cumsum(gap_durations(positions, velocities, dt))])
+
+
+def fill_gaps(
+    positions: np.ndarray, velocities: np.ndarray, dt: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    r"""A recording at a fixed step with the samples it dropped put back.
+
+    Each gap (a step of duration :math:`h > \Delta t`, see :func:`gap_durations`) from
+    :math:`(x_k, v_k)` to :math:`(x_{k+1}, v_{k+1})` becomes :math:`m = \lfloor h / \Delta t
+    \rfloor` steps of :math:`h / m \ge \Delta t`, whose new samples lie on the cubic Hermite
+    curve through both ends with both recorded velocities, and take its velocities: the
+    smoothest motion that leaves and joins the recording as it moved, in the time the
+    velocities need. Without them a gap is a hole, 2-27 % of the task's extent long in the
+    3-D LPV-DS files, in the thin tube of the demonstrations: a policy has no data there and
+    its rollouts leave the tube across it. The recorded samples are kept unchanged.
+
+    Arguments:
+        positions: Positions, shape (T, n).
+        velocities: Recorded velocities, shape (T, n).
+        dt: The nominal time step.
+
+    Returns:
+        The positions (T', n), velocities (T', n) and strictly increasing times from 0 (T',),
+        T' >= T (T' = T when nothing is missing).
+    """
+    durations = gap_durations(positions, velocities, dt)
+    # Sub-steps of each recorded step: 1, or h / dt rounded down (up to rounding error) across
+    # a gap, so no filled step is shorter than the recording's own.
+    counts = np.maximum(1, np.floor(durations / dt + 1e-9).astype(np.int64))
+    step = np.repeat(np.arange(len(durations)), counts)
+    first = np.repeat(np.cumsum(counts) - counts, counts)
+    fraction = (np.arange(len(step)) - first + 1) / counts[step]
+    h = durations[step]
+    x, v = _hermite(
+        positions[step], velocities[step], positions[step + 1], velocities[step + 1], h, fraction
+    )
+    # The recorded sample itself, not the curve's rounding of it, ends each step.
+    recorded = fraction == 1.0
+    x[recorded], v[recorded] = positions[1:], velocities[1:]
+    starts = np.concatenate([[0.0], np.cumsum(durations)[:-1]])
+    times = starts[step] + h * fraction
+    return (
+        np.concatenate([positions[:1], x]),
+        np.concatenate([velocities[:1], v]),
+        np.concatenate([[0.0], times]),
+    )
+
+
+def _hermite(
+    x0: np.ndarray,
+    v0: np.ndarray,
+    x1: np.ndarray,
+    v1: np.ndarray,
+    h: np.ndarray,
+    s: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Positions and velocities (N, n) at fractions ``s`` (N,) of steps of durations ``h``
+    (N,) on the cubic Hermite curves from (x0, v0) to (x1, v1), each (N, n)."""
+    s, h = s[:, None], h[:, None]
+    basis = (2 * s**3 - 3 * s**2 + 1, s**3 - 2 * s**2 + s, -2 * s**3 + 3 * s**2, s**3 - s**2)
+    slopes = (6 * s**2 - 6 * s, 3 * s**2 - 4 * s + 1, -6 * s**2 + 6 * s, 3 * s**2 - 2 * s)
+    ends = (x0, h * v0, x1, h * v1)
+    positions = sum(b * e for b, e in zip(basis, ends, strict=True))
+    velocities = sum(d * e for d, e in zip(slopes, ends, strict=True)) / h
+    return positions, velocities
 
 
 # CSV.

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from snds.data.demonstrations import Demonstrations
-from snds.data.files import load_demonstrations
+from snds.data.files import GAP_MODES, load_demonstrations
 from snds.data.lasa import load_lasa
 from snds.data.poses import (
     PoseDemonstrations,
@@ -32,6 +32,9 @@ from snds.data.targets import MAX_END_SPREAD
 from snds.errors import DataError
 
 __all__ = ["DataSource"]
+
+#: How files were read before a model's data record named ``gaps``: gaps re-timed, not filled.
+GAPS_BEFORE_RECORDED = "retime"
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -46,6 +49,8 @@ class DataSource:
             so that a subset ending at one place can be used from a file ending at several.
         max_end_spread: Largest accepted distance of a file's demonstration end from the
             common target, in extents (see :func:`~snds.data.targets.common_target`).
+        gaps: How a ``.mat`` file's recording gaps are treated, one of
+            :data:`~snds.data.files.GAP_MODES` (see :func:`~snds.data.files.load_mat`).
         poses: Whether the task is in SE(3). Automatic for a pose file; position data are
             then lifted with synthetic orientations.
         orientation_seed: Seed of the synthetic orientations.
@@ -55,6 +60,7 @@ class DataSource:
     file: Path | None = None
     demos: int | tuple[int, ...] | None = None
     max_end_spread: float = MAX_END_SPREAD
+    gaps: str = "fill"
     poses: bool = False
     orientation_seed: int = 0
 
@@ -65,6 +71,8 @@ class DataSource:
             object.__setattr__(self, "file", Path(self.file))
             if is_pose_file(self.file):
                 object.__setattr__(self, "poses", True)
+        if self.gaps not in GAP_MODES:
+            raise DataError(f"unknown gap mode {self.gaps!r}; choose from {list(GAP_MODES)}")
         if isinstance(self.demos, list):
             object.__setattr__(self, "demos", tuple(self.demos))
         if isinstance(self.demos, int) and self.demos < 1:
@@ -98,12 +106,17 @@ class DataSource:
                 "file": str(self.file.resolve()),
                 "demos": demos,
                 "max_end_spread": self.max_end_spread,
+                "gaps": self.gaps,
             }
         return record | ({"orientation_seed": self.orientation_seed} if self.poses else {})
 
     @classmethod
     def from_record(cls, record: dict, *, poses: bool = False) -> DataSource:
-        """The source a :meth:`record` describes; ``poses`` for a pose model's data."""
+        """The source a :meth:`record` describes; ``poses`` for a pose model's data.
+
+        A file record without ``gaps`` predates gap filling: its model was trained on
+        re-timed gaps (:data:`GAPS_BEFORE_RECORDED`), and is evaluated on them.
+        """
         if "motion" not in record and "file" not in record:
             raise DataError("the data record names neither a motion nor a file")
         spread = record.get("max_end_spread")
@@ -112,6 +125,7 @@ class DataSource:
             file=Path(record["file"]) if "file" in record else None,
             demos=record.get("demos"),
             max_end_spread=MAX_END_SPREAD if spread is None else float(spread),
+            gaps=str(record.get("gaps", GAPS_BEFORE_RECORDED)),
             poses=poses,
             orientation_seed=int(record.get("orientation_seed", 0)),
         )
@@ -124,7 +138,10 @@ class DataSource:
     def _positions(self) -> Demonstrations:
         if self.file is not None:
             return load_demonstrations(
-                self.file, select=self._indices(), max_end_spread=self.max_end_spread
+                self.file,
+                select=self._indices(),
+                max_end_spread=self.max_end_spread,
+                gaps=self.gaps,
             )
         loaded = load_lasa(self.motion)
         if self.demos is None:
