@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import dataclasses
 import datetime
 import json
 import os
@@ -28,6 +27,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from _overrides import parse_pairs, split_overrides
 from _readme import write_readme_section
 
 from snds.benchmark import MOTION_GROUPS, PAPER_SNDS_MSE
@@ -50,14 +50,6 @@ DTW_BEFORE = {
 HERE = Path(__file__).resolve().parent
 
 
-def _parse_overrides(pairs: list[str]) -> dict[str, object]:
-    overrides = {}
-    for pair in pairs:
-        key, _, value = pair.partition("=")
-        overrides[key] = json.loads(value) if value[:1] in "[{0123456789-tfn" else value
-    return overrides
-
-
 def run_one(motion: str, seed: int, overrides: dict[str, object], quick: bool) -> dict:
     """Trains and evaluates one (motion, seed) in this process; returns one result row."""
     import torch
@@ -70,11 +62,9 @@ def run_one(motion: str, seed: int, overrides: dict[str, object], quick: bool) -
     from snds.stability import CheckConfig
     from snds.train import TrainConfig, fit
 
-    policy_fields = {f.name for f in dataclasses.fields(PolicyConfig)}
-    policy_config = PolicyConfig(**{k: v for k, v in overrides.items() if k in policy_fields})
-    train_config = TrainConfig(
-        seed=seed, **{k: v for k, v in overrides.items() if k not in policy_fields}
-    )
+    policy_overrides, train_overrides = split_overrides(overrides)
+    policy_config = PolicyConfig(**policy_overrides)
+    train_config = TrainConfig(seed=seed, **train_overrides)
     demos = load_lasa(motion)
     split = split_samples(demos, test_fraction=0.2, seed=seed)
     policy = StablePolicy(
@@ -172,7 +162,7 @@ def main() -> None:
         if not args.no_readme:
             write_readme_section("core", header_line(meta, rows) + "\n\n" + table)
         return
-    overrides = _parse_overrides(args.set)
+    overrides = parse_pairs(args.set)
     calls = [(m, s, overrides, args.quick) for m in args.motions for s in range(args.seeds)]
     finished = {}
     for index, row in starmap_unordered(run_one, calls, jobs=args.jobs):

@@ -29,12 +29,13 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import torch
+from _overrides import parse_value, split_overrides
 
 from snds import make_policy
 from snds.benchmark import MOTION_GROUPS
 from snds.data import load_demonstrations, load_lasa, split_samples
 from snds.evaluate import accuracy
-from snds.policy import PolicyConfig, float64_copy
+from snds.policy import float64_copy
 from snds.recipes import RECIPES
 from snds.train import fit
 
@@ -52,10 +53,7 @@ def parse_variant(text: str) -> tuple[str, dict[str, object]]:
             continue
         if not sep or not key:
             raise SystemExit(f"screen.py: variant {text!r}: {match.group(0)!r} is not KEY=VALUE")
-        try:
-            overrides[key] = json.loads(value)
-        except json.JSONDecodeError:
-            overrides[key] = value
+        overrides[key] = parse_value(value)
     return name, overrides
 
 
@@ -68,9 +66,7 @@ def run(motion: str, seed: int, demos: int | None, name: str, overrides: dict) -
     """One fit and its accuracy (``motion``: a LASA name or a demonstrations file)."""
     torch.set_num_threads(1)
     recipe = RECIPES["default"]
-    policy_fields = {field.name for field in dataclasses.fields(PolicyConfig)}
-    policy_overrides = {k: v for k, v in overrides.items() if k in policy_fields}
-    train_overrides = {k: v for k, v in overrides.items() if k not in policy_fields}
+    policy_overrides, train_overrides = split_overrides(overrides)
     data = _load(motion)
     if demos is not None:
         data = data.first(demos)
