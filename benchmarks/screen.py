@@ -120,7 +120,7 @@ def main() -> None:
         "--motions",
         nargs="+",
         default=list(MOTION_GROUPS["paper8"]),
-        help="LASA motions, or demonstrations files (.mat, .csv, .npz)",
+        help="LASA motions, groups of them (paper8, multi, all), or demonstrations files",
     )
     parser.add_argument("--seeds", type=int, default=1, help="seeds 0 .. N-1")
     parser.add_argument("--seed-list", type=int, nargs="+", help="these seeds instead")
@@ -133,12 +133,13 @@ def main() -> None:
     args = parser.parse_args()
     variants = [parse_variant(text) for text in args.variant or ["default:"]]
     seeds = args.seed_list or list(range(args.seeds))
+    motions = [motion for name in args.motions for motion in MOTION_GROUPS.get(name, (name,))]
     args.out.parent.mkdir(parents=True, exist_ok=True)
     jobs = [
         (motion, seed, args.demos, name, overrides)
         for name, overrides in variants
         for seed in seeds
-        for motion in args.motions
+        for motion in motions
     ]
     rows = []
     with ProcessPoolExecutor(args.jobs) as pool, open(args.out, "a") as out:
