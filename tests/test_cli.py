@@ -150,6 +150,38 @@ def test_max_end_spread_merges_far_ends_and_is_recorded_for_evaluate(tmp_path, c
     assert "--max-end-spread: expected a number >= 0" in capsys.readouterr().err
 
 
+def test_gaps_choose_how_a_mat_files_dropped_samples_are_read_and_are_recorded(tmp_path, capsys):
+    import scipy.io
+
+    from snds.data import DataSource
+
+    # GIVEN two demonstrations along parabolas at 0.01 s, each missing 30 samples
+    t = 0.01 * np.arange(120)
+    keep = np.r_[0:40, 70:120]
+    blocks = []
+    for scale in (1.0, 1.2):
+        positions = np.stack([scale * (1.2 - t) ** 2, scale * (1.2 - t)])
+        velocities = np.stack([-2 * scale * (1.2 - t), -scale * np.ones_like(t)])
+        blocks.append(np.concatenate([positions, velocities])[:, keep])
+    path = tmp_path / "gaps.mat"
+    scipy.io.savemat(path, {"Data": np.concatenate(blocks, axis=1), "dt": 0.01})
+    samples = {}
+    for gaps in (None, "retime"):
+        out = tmp_path / f"model-{gaps}"
+        argv = ["--quiet", "train", "--data", str(path), "--out", str(out), "--steps", "20"]
+        argv += ["--rollouts", "20", "--samples", "500"]
+        assert main(argv + (["--gaps", gaps] if gaps else [])) == 0
+        record = json.loads((out / "model.json").read_text())["data"]
+        samples[record["gaps"]] = sum(len(d.times) for d in DataSource.from_record(record).load())
+    # THEN the default fills the gaps (30 samples back in each), retime keeps the 90 recorded
+    assert samples == {"fill": 240, "retime": 180}
+    # AND an unknown mode is refused by the parser
+    with pytest.raises(SystemExit) as exit_info:
+        main(["train", "--data", str(path), "--gaps", "drop"])
+    assert exit_info.value.code == 2
+    assert "--gaps: invalid choice" in capsys.readouterr().err
+
+
 def test_relaxed_mode_turns_every_decay_term_off():
     from snds.cli import _build_parser, _policy_config
     from snds.data import Normalization, load_lasa

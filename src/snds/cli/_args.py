@@ -6,6 +6,7 @@ import argparse
 import math
 from pathlib import Path
 
+from snds.data.files import GAP_MODES
 from snds.stability import ROLLOUTS, SAMPLES
 
 
@@ -48,6 +49,13 @@ def _data_arguments(parser: argparse.ArgumentParser, *, required: bool) -> None:
         default=None,
         help="largest distance of a file's demonstration end from their common target, in "
         "extents (default 0.25; a model records the value it was trained with)",
+    )
+    parser.add_argument(
+        "--gaps",
+        choices=GAP_MODES,
+        default=None,
+        help="a .mat file's recording gaps: fill puts the dropped samples back (default), "
+        "retime only gives the jump its time, as files were read before; a model records it",
     )
 
 

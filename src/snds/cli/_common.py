@@ -36,9 +36,10 @@ def _scene(args: argparse.Namespace):
 
 
 def _data_source(args: argparse.Namespace, *, poses: bool = False, seed: int = 0) -> DataSource:
-    """The demonstrations that ``--motion`` / ``--data``, ``--demos`` and ``--max-end-spread``
-    name; with ``poses`` in SE(3) (synthetic orientations seeded by ``seed`` for position
-    data; automatic for a pose file)."""
+    """The demonstrations that ``--motion`` / ``--data``, ``--demos``, ``--max-end-spread``
+    and ``--gaps`` name (the library's default gap mode where not given); with ``poses`` in
+    SE(3) (synthetic orientations seeded by ``seed`` for position data; automatic for a pose
+    file)."""
     spread = MAX_END_SPREAD if args.max_end_spread is None else args.max_end_spread
     return DataSource(
         motion=args.motion,
@@ -47,6 +48,7 @@ def _data_source(args: argparse.Namespace, *, poses: bool = False, seed: int = 0
         max_end_spread=spread,
         poses=poses,
         orientation_seed=seed,
+        **({"gaps": args.gaps} if args.gaps else {}),
     )
 
 
