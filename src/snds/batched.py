@@ -26,7 +26,7 @@ import copy
 import sys
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, field, fields, replace
 
 import torch
 from torch import Tensor, nn
@@ -67,6 +67,11 @@ class _Fit:
     generator: torch.Generator
     optimizer: torch.optim.Adam
     state: _State
+    parameters: list[torch.Tensor] = field(init=False)
+
+    def __post_init__(self) -> None:
+        # The same tensors for the whole fit: a restart reloads the state dict in place.
+        self.parameters = list(self.policy.parameters())
 
 
 def fit_many(
@@ -234,7 +239,7 @@ def _fit_group(fits: list[_Fit], *, progress: bool) -> None:
             # fit is left out, as fit skips its backward pass.
             (losses if len(healthy) == len(active) else losses[healthy]).sum().backward()
         for i in healthy:
-            norm = clip_gradients(list(active[i].policy.parameters()), config.grad_clip)
+            norm = clip_gradients(active[i].parameters, config.grad_clip)
             # As in fit: a NaN gradient is a diverged step too.
             diverged[i] = not bool(torch.isfinite(norm))
         stopped = []

@@ -63,7 +63,7 @@ def load_demonstrations(
     if loader is None:
         supported = ", ".join(sorted(LOADERS))
         raise DataError(f"{path}: unsupported file type {path.suffix!r} (supported: {supported})")
-    _check_gap_mode(gaps)
+    check_gap_mode(gaps)
     options = {"gaps": gaps} if loader is load_mat else {}
     return loader(path, max_end_spread=max_end_spread, select=select, **options)
 
@@ -106,7 +106,7 @@ def load_mat(
         DataError: If the file is missing, unreadable or truncated, lacks ``Data``/``data``,
             holds matrices of the wrong shape or with NaN/inf, or ``gaps`` is unknown.
     """
-    _check_gap_mode(gaps)
+    check_gap_mode(gaps)
     path = _existing_file(path)
     with _context(str(path)):
         contents = _read_mat(path)
@@ -374,7 +374,8 @@ def _split_at_rest(data: np.ndarray) -> list[np.ndarray]:
     return blocks
 
 
-def _check_gap_mode(gaps: str) -> None:
+def check_gap_mode(gaps: str) -> None:
+    """Raises a DataError naming the choices unless ``gaps`` is one of :data:`GAP_MODES`."""
     if gaps not in GAP_MODES:
         raise DataError(f"unknown gap mode {gaps!r}; choose from {list(GAP_MODES)}")
 

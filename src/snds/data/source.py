@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from snds.data.demonstrations import Demonstrations
-from snds.data.files import GAP_MODES, load_demonstrations
+from snds.data.files import check_gap_mode, load_demonstrations
 from snds.data.lasa import load_lasa
 from snds.data.poses import (
     PoseDemonstrations,
@@ -71,8 +71,7 @@ class DataSource:
             object.__setattr__(self, "file", Path(self.file))
             if is_pose_file(self.file):
                 object.__setattr__(self, "poses", True)
-        if self.gaps not in GAP_MODES:
-            raise DataError(f"unknown gap mode {self.gaps!r}; choose from {list(GAP_MODES)}")
+        check_gap_mode(self.gaps)
         if isinstance(self.demos, list):
             object.__setattr__(self, "demos", tuple(self.demos))
         if isinstance(self.demos, int) and self.demos < 1:
