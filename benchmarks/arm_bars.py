@@ -48,7 +48,8 @@ END_BAR_M = 0.01
 def measure(run: Path) -> dict:
     """The bars' figures of one run folder (a model, its ``metrics.json``)."""
     policy, description = load_model(run)
-    demos = DataSource.from_record(description["data"]).load()
+    source = DataSource.from_record(description["data"])
+    demos = source.load()
     policy = float64_copy(policy)
     extent = demos.extent()
     paths = reproduce(policy, demos, list(range(len(demos))))
@@ -70,7 +71,7 @@ def measure(run: Path) -> dict:
         "converged_fraction": stability["converged_fraction"],
         "decrease_violations": stability["decrease_violations"],
         "train_seconds": metrics.get("train_seconds"),
-        "gaps": description["data"].get("gaps", "retime"),
+        "gaps": source.gaps,
     }
     row["meets_bars"] = bool(
         row["frechet_over_extent"] <= FRECHET_BAR

@@ -29,6 +29,10 @@ GAP_MODES = ("fill", "retime")
 ``"fill"`` puts the missing samples back (:func:`fill_gaps`, the default), ``"retime"`` only
 gives the jump the time it took (:func:`retime_gaps`, how files were read before)."""
 
+DEFAULT_GAPS = "fill"
+"""The gap mode of :func:`load_mat`, :func:`load_demonstrations` and
+:class:`~snds.data.DataSource` when none is given."""
+
 CSV_HEADER = "demo,t,x1,...,xn[,v1,...,vn]"
 NPZ_KEYS = ("pos", "vel", "t", "dt")
 
@@ -38,7 +42,7 @@ def load_demonstrations(
     *,
     max_end_spread: float = MAX_END_SPREAD,
     select: Sequence[int] | None = None,
-    gaps: str = "fill",
+    gaps: str = DEFAULT_GAPS,
 ) -> Demonstrations:
     """Loads a demonstrations file, choosing the reader by its extension (see :data:`LOADERS`).
 
@@ -73,7 +77,7 @@ def load_mat(
     *,
     max_end_spread: float = MAX_END_SPREAD,
     select: Sequence[int] | None = None,
-    gaps: str = "fill",
+    gaps: str = DEFAULT_GAPS,
 ) -> Demonstrations:
     """Loads demonstrations from a MATLAB file (v4 to v7.2) in one of the LPV-DS layouts.
 

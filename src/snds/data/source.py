@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from snds.data.demonstrations import Demonstrations
-from snds.data.files import check_gap_mode, load_demonstrations
+from snds.data.files import DEFAULT_GAPS, check_gap_mode, load_demonstrations
 from snds.data.lasa import load_lasa
 from snds.data.poses import (
     PoseDemonstrations,
@@ -60,7 +60,7 @@ class DataSource:
     file: Path | None = None
     demos: int | tuple[int, ...] | None = None
     max_end_spread: float = MAX_END_SPREAD
-    gaps: str = "fill"
+    gaps: str = DEFAULT_GAPS
     poses: bool = False
     orientation_seed: int = 0
 
