@@ -49,6 +49,7 @@ from snds.benchmark import (
     run_sweep,
     summarise,
 )
+from snds.io import write_json
 
 HERE = Path(__file__).resolve().parent
 #: name -> (motions, demonstrations per task; None: all 7)
@@ -87,9 +88,20 @@ def commit() -> tuple[str, str]:
 
 def provenance(out: Path, args: argparse.Namespace) -> dict:
     """The sweep's record in ``out``: the commit its runs started from and that commit's
-    ``src/`` tree; resuming with another ``src/`` is refused."""
+    ``src/`` tree; resuming with another ``src/``, or rows without a record, is refused.
+
+    The record is written before any run starts, with the time it started; a sweep that was
+    stopped before it could add its wall time gets the part up to its last finished row (the
+    time ``results.jsonl`` was last written) when it resumes.
+    """
     path = out / PROVENANCE
+    results = out / "results.jsonl"
     record = json.loads(path.read_text()) if path.is_file() else {}
+    if not record and results.exists():
+        raise SystemExit(
+            f"{out} holds rows but no {PROVENANCE}, so their commit is unknown: delete the "
+            "folder to rerun, or write the record of the commit they come from"
+        )
     head, tree = commit()
     if record.get("src_tree", tree) != tree:
         raise SystemExit(
@@ -97,6 +109,11 @@ def provenance(out: Path, args: argparse.Namespace) -> dict:
             "this one's: delete the folder (and its copy under benchmarks/results/sweeps) "
             "to rerun"
         )
+    started = record.pop("part_started", None)
+    if started is not None:
+        last = results.stat().st_mtime if results.exists() else started
+        record["wall_seconds"] = record.get("wall_seconds", 0.0) + max(0.0, last - started)
+        record["interrupted"] = record.get("interrupted", 0) + 1
     record.setdefault("commit", head)
     record.update(
         src_tree=tree,
@@ -126,13 +143,16 @@ def run(name: str, args: argparse.Namespace, settings: SweepSettings) -> str:
     if args.done_only:
         done = finished_rows(out)
         tasks = [task for task in tasks if task.key in done]
-    start = time.perf_counter()
     pending = len(tasks) - len(finished_rows(out).keys() & {task.key for task in tasks})
+    if pending:
+        record["part_started"] = time.time()
+    write_json(out / PROVENANCE, record)
     rows = run_sweep(tasks, out=out, settings=settings, jobs=args.jobs, scheduler=args.scheduler)
     if pending:
-        record["wall_seconds"] = record.get("wall_seconds", 0.0) + time.perf_counter() - start
+        started = record.pop("part_started")
+        record["wall_seconds"] = record.get("wall_seconds", 0.0) + time.time() - started
         record["runs"] = len(rows)
-    (out / PROVENANCE).write_text(json.dumps(record, indent=1) + "\n")
+    write_json(out / PROVENANCE, record)
     plot_benchmark(rows, out)
     copy.mkdir(parents=True, exist_ok=True)
     files = COPIED + (("streamlines.png",) if args.streamlines else ())
@@ -154,6 +174,12 @@ def run(name: str, args: argparse.Namespace, settings: SweepSettings) -> str:
     where = (
         f"Commit `{record['commit'][:10]}`; {len(rows)} runs on {record['where']}"
         + (f" in {wall / 60:.0f} min wall time" if wall else "")
+        + (
+            f" (resumed {record['interrupted']} time(s); a stopped part counts up to its last "
+            "finished run)"
+            if record.get("interrupted")
+            else ""
+        )
         + ".\n\n"
     )
     return (
