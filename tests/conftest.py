@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 from pathlib import Path
 
 import numpy as np
@@ -9,6 +10,8 @@ import pytest
 import torch
 
 from snds.data import Demonstration, Demonstrations, Normalization
+from snds.data.demonstrations import Split, split_samples
+from snds.losses import make_samples
 from snds.policy import PolicyConfig, StablePolicy
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -42,6 +45,30 @@ def spiral_demos(count: int = 3, samples: int = 400, dim: int = 2) -> Demonstrat
 @pytest.fixture(scope="session")
 def spiral() -> Demonstrations:
     return spiral_demos()
+
+
+@pytest.fixture(scope="session")
+def spiral_split(spiral: Demonstrations) -> tuple[Demonstrations, Split]:
+    """The spiral with the 0.8 / 0.2 sample split of seed 0."""
+    return spiral, split_samples(spiral, test_fraction=0.2, seed=0)
+
+
+def held_out_relative_mse(policy: torch.nn.Module, demos: Demonstrations, split: Split) -> float:
+    """A policy's velocity MSE on the test samples over their mean squared speed, in model
+    coordinates and float64 (0: exact; 1: as bad as standing still)."""
+    test = make_samples(demos, Normalization.fit(demos), Split(split.test()), window=0)
+    policy = copy.deepcopy(policy).double()
+    with torch.no_grad():
+        error = ((policy.field(test.positions) - test.velocities) ** 2).sum(-1).mean()
+    return float(error / (test.velocities**2).sum(-1).mean())
+
+
+def lie_derivative_eigenvalues(policy: torch.nn.Module) -> np.ndarray:
+    """For a blend of linear systems A_k with V = x^T P x: the largest eigenvalue of
+    A_k^T P + P A_k for every k, shape (K,); all negative is the stability condition."""
+    a = policy.matrices.detach().double().numpy()
+    p = policy.lyapunov.matrix.detach().double().numpy()
+    return np.linalg.eigvalsh(np.swapaxes(a, -1, -2) @ p + p @ a).max(-1)
 
 
 def make_policy(

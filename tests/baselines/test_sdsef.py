@@ -11,24 +11,16 @@ from snds.baselines.sdsef import SDSEF, SDSEFConfig, SDSEFPolicy
 from snds.data import Demonstration, Demonstrations, Normalization
 from snds.data.demonstrations import Split, split_samples
 from snds.errors import DataError
-from snds.losses import make_samples
 from snds.methods import METHODS, POLICY_KINDS
 from snds.models import load_model, save_model
 from snds.stability import CheckConfig, check_stability
 from snds.train import TrainConfig
 
+from conftest import held_out_relative_mse
+
 SMALL = SDSEFConfig(layers=4, features=16, speed_features=16, max_log_scale=0.0)
 #: Affine couplings (RealNVP-style, bounded log-scale) and additive ones (NICE-style).
 VARIANTS = {"affine": dataclasses.replace(SMALL, max_log_scale=2.0), "additive": SMALL}
-
-
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    # Tiny networks: one torch thread is faster, by far on a busy machine.
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 def unit_normalization(dim: int) -> Normalization:
@@ -72,15 +64,6 @@ def warped_demos(count: int = 4, samples: int = 150) -> Demonstrations:
         v = np.stack([-z[:, 0], -z[:, 1] + 3.0 * np.cos(3.0 * z[:, 0]) * z[:, 0]], axis=1)
         demos.append(Demonstration(positions=x, velocities=v, times=times))
     return Demonstrations(tuple(demos), np.zeros(2), "warped")
-
-
-def held_out_relative_mse(policy: SDSEFPolicy, demos: Demonstrations, split: Split) -> float:
-    """Velocity MSE on the test samples over their mean squared speed (model coordinates)."""
-    test = make_samples(demos, Normalization.fit(demos), Split(split.test()), window=0)
-    policy = copy.deepcopy(policy).double()
-    with torch.no_grad():
-        error = ((policy.field(test.positions) - test.velocities) ** 2).sum(-1).mean()
-    return float(error / (test.velocities**2).sum(-1).mean())
 
 
 @pytest.fixture(scope="module")
