@@ -26,7 +26,6 @@ from snds.baselines.lpvds import (  # noqa: E402
     similarity,
 )
 from snds.baselines.mixture import MixtureConfig  # noqa: E402
-from snds.models import load_model, save_model  # noqa: E402
 
 
 def curved_demos(count: int = 3, samples: int = 300) -> Demonstrations:
@@ -94,18 +93,6 @@ def test_curved_motion_reaches_the_target(curved):
     demos, _, fitted = curved
     report = check_stability(fitted.policy, demos, CheckConfig(rollouts=100, samples=2000, seed=0))
     assert report.converged_fraction == 1.0 and report.decrease_violations == 0
-
-
-def test_save_load_round_trip_gives_identical_outputs(curved, tmp_path):
-    _, _, fitted = curved
-    save_model(fitted.policy, tmp_path / "model", extra=fitted.record)
-    loaded, description = load_model(tmp_path / "model")
-    assert isinstance(loaded, LPVDSPolicy) and description["kind"] == "lpvds"
-    assert loaded.config == fitted.policy.config
-    x = torch.randn(200, 2, dtype=torch.float64)
-    with torch.no_grad():
-        torch.testing.assert_close(loaded(x), fitted.policy(x), rtol=0, atol=0)
-    assert loaded.lyapunov.quadratic == fitted.policy.lyapunov.quadratic
 
 
 def test_a_failed_lyapunov_program_falls_back_to_the_identity(spiral_split, monkeypatch):
