@@ -12,6 +12,8 @@ the figures beside the SNDS rows (``against-baselines.json``).
 
     python benchmarks/against_baselines.py benchmarks/results/data-rate/paper8-snds-0.1.jsonl \\
         benchmarks/results/sweeps/paper8/results.jsonl
+    python benchmarks/against_baselines.py benchmarks/results/sweeps/paper8-demos1/results.jsonl \\
+        --section snds-vs-baselines-demos1   # one sweep holding every method
 """
 
 from __future__ import annotations
@@ -38,6 +40,11 @@ def _mean(rows: list[dict], key: str) -> float:
     return statistics.fmean(row[key] for row in rows)
 
 
+def _sd(rows: list[dict], key: str) -> float:
+    """The sample standard deviation over seeds (0 for a single run)."""
+    return statistics.stdev(row[key] for row in rows) if len(rows) > 1 else 0.0
+
+
 def compare(snds_rows: list[dict], base_rows: list[dict]) -> list[dict]:
     """One record per motion of the SNDS rows, in their order of first appearance."""
     base: dict[tuple[str, str], list[dict]] = defaultdict(list)
@@ -59,7 +66,9 @@ def compare(snds_rows: list[dict], base_rows: list[dict]) -> list[dict]:
                 "motion": motion,
                 "runs": len(rows),
                 "dtw": _mean(rows, "dtw_paper"),
+                "dtw_sd": _sd(rows, "dtw_paper"),
                 "best_baseline_dtw": dtw[best_dtw],
+                "best_baseline_dtw_sd": _sd(base[(motion, best_dtw)], "dtw_paper"),
                 "best_dtw_method": best_dtw,
                 "mse": _mean(rows, "velocity_mse_paper"),
                 "best_baseline_mse": mse[best_mse],
@@ -87,8 +96,9 @@ def _cell(value: float | None, spec: str) -> str:
 def table(records: list[dict], snds_path: Path, base_path: Path) -> str:
     lines = [
         f"SNDS rows `{snds_path.name}` against the baselines of `{base_path.parent.name}` "
-        "(means over seeds, paper scale; baselines: SDS-EF, LPV-DS, SEDS; **bold**: SNDS "
-        "below every baseline). BC, the unconstrained control, is not counted.",
+        "(means over seeds, paper scale, DTW's standard deviation over seeds in brackets; "
+        "baselines: SDS-EF, LPV-DS, SEDS; **bold**: SNDS below every baseline). BC, the "
+        "unconstrained control, is not counted.",
         "",
         "| motion | runs | SNDS DTW | best baseline DTW | SNDS MSE | best baseline MSE "
         "| SNDS converged (min) | violations | BC DTW | BC MSE | BC converged (min) |",
@@ -99,8 +109,9 @@ def table(records: list[dict], snds_path: Path, base_path: Path) -> str:
         mse = f"{r['mse']:.3g}"
         lines.append(
             f"| {r['motion']} | {r['runs']} "
-            f"| {f'**{dtw}**' if r['dtw'] < r['best_baseline_dtw'] else dtw} "
+            f"| {f'**{dtw}**' if r['dtw'] < r['best_baseline_dtw'] else dtw} ({r['dtw_sd']:.3f}) "
             f"| {r['best_dtw_method']} {r['best_baseline_dtw']:.3f} "
+            f"({r['best_baseline_dtw_sd']:.3f}) "
             f"| {f'**{mse}**' if r['mse'] < r['best_baseline_mse'] else mse} "
             f"| {r['best_mse_method']} {r['best_baseline_mse']:.3g} "
             f"| {r['min_converged']:.3f} | {r['violations']} "
@@ -116,16 +127,23 @@ def table(records: list[dict], snds_path: Path, base_path: Path) -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("snds", type=Path, help="results.jsonl with the SNDS rows")
-    parser.add_argument("baselines", type=Path, help="results.jsonl with the baselines' rows")
+    parser.add_argument(
+        "baselines",
+        type=Path,
+        nargs="?",
+        help="results.jsonl with the baselines' rows (default: the SNDS file, one sweep)",
+    )
+    parser.add_argument("--section", default="snds-vs-baselines", help="README block to write")
     parser.add_argument("--no-readme", action="store_true")
     args = parser.parse_args()
-    records = compare(_rows(args.snds), _rows(args.baselines))
+    baselines = args.baselines or args.snds
+    records = compare(_rows(args.snds), _rows(baselines))
     out = args.snds.with_name("against-baselines.json")
     out.write_text(json.dumps(records, indent=1) + "\n")
-    body = table(records, args.snds, args.baselines)
+    body = table(records, args.snds, baselines)
     print(body)
     if not args.no_readme:
-        write_readme_section("snds-vs-baselines", body)
+        write_readme_section(args.section, body)
 
 
 if __name__ == "__main__":
