@@ -11,6 +11,11 @@ two figures per demonstration, both from a rollout that starts at the demonstrat
 * the distance to the target after 1.5x the demonstration's duration (Euler at the
   demonstration's mean sample step); the bar: at most 1 cm.
 
+The issue's Fréchet bar can also be read on that longer rollout, which has the time to
+finish the path: a rollout that lags but stays on the path passes. Both readings are
+reported (``frechet_over_extent``: over 1.0x the duration; ``frechet_run_out_over_extent``:
+over 1.5x), each with its count of runs meeting every bar.
+
 A run meets the bars when its worst demonstration does, with converged fraction 1.0 and no
 decrease violations in its stability check (read from the run's ``metrics.json``).
 
@@ -54,12 +59,13 @@ def measure(run: Path) -> dict:
     extent = demos.extent()
     paths = reproduce(policy, demos, list(range(len(demos))))
     frechets = [frechet(p, path_reference(d)) / extent for p, d in zip(paths, demos, strict=True)]
-    ends = []
+    ends, run_out = [], []
     for demo in demos:
         dt = demo.duration / (len(demo.times) - 1)
         steps = int(np.ceil(1.5 * demo.duration / dt))
-        end = rollout_numpy(policy, demo.states[:1], dt=dt, steps=steps)[0][-1]
-        ends.append(float(np.linalg.norm(end - np.asarray(demos.target))))
+        path = rollout_numpy(policy, demo.states[:1], dt=dt, steps=steps)[0]
+        ends.append(float(np.linalg.norm(path[-1] - np.asarray(demos.target))))
+        run_out.append(frechet(path, path_reference(demo)) / extent)
     metrics = json.loads((run / "metrics.json").read_text())
     stability = metrics["stability"]
     row = {
@@ -67,18 +73,20 @@ def measure(run: Path) -> dict:
         "seed": int(run.name.split("=")[1]),
         "extent_m": extent,
         "frechet_over_extent": max(frechets),
+        "frechet_run_out_over_extent": max(run_out),
         "end_distance_m": max(ends),
         "converged_fraction": stability["converged_fraction"],
         "decrease_violations": stability["decrease_violations"],
         "train_seconds": metrics.get("train_seconds"),
         "gaps": source.gaps,
     }
-    row["meets_bars"] = bool(
-        row["frechet_over_extent"] <= FRECHET_BAR
-        and row["end_distance_m"] <= END_BAR_M
+    rest = (
+        row["end_distance_m"] <= END_BAR_M
         and row["converged_fraction"] == 1.0
         and row["decrease_violations"] == 0
     )
+    row["meets_bars"] = bool(rest and row["frechet_over_extent"] <= FRECHET_BAR)
+    row["meets_bars_run_out"] = bool(rest and row["frechet_run_out_over_extent"] <= FRECHET_BAR)
     return row
 
 
@@ -106,20 +114,28 @@ def table(rows: list[dict], source: Path) -> str:
         "the target after 1.5x the demonstration's duration, converged 1.0, 0 violations. "
         "Lengths in the data's units: metres for the 3D files.",
         "",
-        "| task | seeds | extent | Fréchet / extent | end distance | converged "
-        "| violations | runs meeting every bar |",
-        "|---|---|---|---|---|---|---|---|",
+        "| task | seeds | extent | Fréchet / extent (1.0x) | Fréchet / extent (1.5x) "
+        "| end distance | converged | violations | runs meeting every bar (1.0x / 1.5x) |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for task in dict.fromkeys(r["task"] for r in rows):
         group = [r for r in rows if r["task"] == task]
         lines.append(
             f"| {task} | {len(group)} | {group[0]['extent_m']:.3f} "
             f"| {max(r['frechet_over_extent'] for r in group):.3f} "
+            f"| {max(r['frechet_run_out_over_extent'] for r in group):.3f} "
             f"| {max(r['end_distance_m'] for r in group):.4f} "
             f"| {min(r['converged_fraction'] for r in group):.3f} "
             f"| {sum(r['decrease_violations'] for r in group)} "
-            f"| {sum(r['meets_bars'] for r in group)}/{len(group)} |"
+            f"| {sum(r['meets_bars'] for r in group)}/{len(group)} "
+            f"/ {sum(r['meets_bars_run_out'] for r in group)}/{len(group)} |"
         )
+    met = sum(r["meets_bars"] for r in rows), sum(r["meets_bars_run_out"] for r in rows)
+    lines += [
+        "",
+        f"Runs meeting every bar: {met[0]} of {len(rows)} with the Fréchet distance over 1.0x "
+        f"the duration, {met[1]} of {len(rows)} over 1.5x.",
+    ]
     return "\n".join(lines) + "\n"
 
 
