@@ -83,3 +83,58 @@ def test_nearest_sample_matches_brute_force_and_survives_a_dtype_change():
     converted = samples.to(torch.float64)
     assert converted.positions.dtype == torch.float64
     torch.testing.assert_close(converted.nearest(states.double()), found)
+
+
+def _brute_force_pull(states: torch.Tensor, samples: Samples, width: float) -> torch.Tensor:
+    """sum_j w_j (x - x_j) across v_j, one state and one sample at a time (float64)."""
+    rows = []
+    for x in states.double():
+        offsets = x - samples.positions.double()
+        weights = torch.softmax(-(offsets**2).sum(-1) / (2 * width**2), dim=0)
+        total = torch.zeros_like(x)
+        for w, offset, v in zip(weights, offsets, samples.velocities.double()):
+            u = v / v.norm() if v.norm() > 0 else torch.zeros_like(v)
+            total += w * (offset - (offset @ u) * u)
+        rows.append(total)
+    return torch.stack(rows)
+
+
+def test_pull_matches_its_definition_sample_by_sample():
+    # GIVEN samples in 3-D with some zero velocities, and states near them
+    generator = torch.Generator().manual_seed(1)
+    positions = torch.randn(300, 3, generator=generator, dtype=torch.float64)
+    velocities = torch.randn(300, 3, generator=generator, dtype=torch.float64)
+    velocities[::7] = 0.0
+    empty = torch.zeros(0, 3)
+    samples = Samples(positions, velocities, empty, torch.zeros(0, 1, 3), torch.zeros(0, 1))
+    states = positions[:40] + 0.3 * torch.randn(40, 3, generator=generator, dtype=torch.float64)
+    # THEN the closed form equals the weighted sum of the offsets across each direction
+    for width in (0.2, 1.0):
+        expected = _brute_force_pull(states, samples, width)
+        torch.testing.assert_close(samples.pull(states, width), expected)
+
+
+def _two_lanes(gap: float) -> Samples:
+    """Two straight parallel paths along x, at y = 0 and y = gap, densely sampled."""
+    x = torch.linspace(-1.0, 1.0, 401, dtype=torch.float64)
+    lanes = [torch.stack([x, torch.full_like(x, y)], 1) for y in (0.0, gap)]
+    positions = torch.cat(lanes)
+    velocities = torch.tensor([1.0, 0.0], dtype=torch.float64).expand_as(positions).clone()
+    empty = torch.zeros(0, 2)
+    return Samples(positions, velocities, empty, torch.zeros(0, 1, 2), torch.zeros(0, 1))
+
+
+def test_pull_points_to_the_middle_of_close_paths_and_to_the_nearest_of_far_ones():
+    states = torch.tensor([[0.1, 0.01], [0.2, 0.018], [0.0, -0.03]], dtype=torch.float64)
+    # GIVEN two paths 0.02 apart and a width of 0.02: the pull is towards y = 0.01, across
+    # the direction of travel only
+    close = _two_lanes(0.02).pull(states, 0.02)
+    torch.testing.assert_close(close[:, 0], torch.zeros(3, dtype=torch.float64))
+    assert abs(close[0, 1]) < 1e-6  # on the middle line: no pull
+    # Above the middle: pulled down towards it (the nearest path, y = 0.02, would pull up)
+    assert 0 < close[1, 1] < 0.008
+    # Below both paths: pulled up
+    assert close[2, 1] < 0
+    # GIVEN the same paths 1.0 apart: the offset from the nearest path, as without a width
+    far = _two_lanes(1.0).pull(states, 0.02)
+    torch.testing.assert_close(far[:, 1], states[:, 1], atol=1e-9, rtol=0)

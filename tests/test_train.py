@@ -334,7 +334,8 @@ def test_the_part_of_an_offset_across_the_direction_of_travel():
 
 
 def test_corrective_noise_trains_moved_states_towards_the_nearest_sample(spiral):
-    # GIVEN the full batch of training samples, no position noise, and a correction share
+    # GIVEN the full batch of training samples, no position noise, a correction share, and
+    # the offset from the nearest sample alone (no width)
     policy = make_policy(spiral, seed=0)
     samples = train_module.make_samples(spiral, policy.normalization, no_split(spiral), window=0)
     samples = samples.to(torch.float64)
@@ -344,6 +345,7 @@ def test_corrective_noise_trains_moved_states_towards_the_nearest_sample(spiral)
         noise_correction=4.0,
         correction_noise=0.05,
         correction_share=0.3,
+        correction_width=0.0,
         seed=0,
     )
     draw = train_module._draw_step(policy, samples, config, torch.Generator().manual_seed(3))
@@ -385,6 +387,7 @@ def test_corrective_noise_searches_a_bounded_set_of_samples(spiral, monkeypatch)
         noise_correction=10.0,
         correction_noise=0.05,
         correction_share=1.0,
+        correction_width=0.0,
     )
     draw = train_module._draw_step(policy, samples, config, torch.Generator().manual_seed(3))
     # THEN every target is the velocity of one of the evenly spaced references, corrected
@@ -420,3 +423,19 @@ def test_no_correction_leaves_the_batch_and_the_random_stream_alone(spiral):
 def test_correction_share_must_be_a_fraction(share):
     with pytest.raises(train_module.ConfigError, match="correction_share"):
         TrainConfig(correction_share=share)
+
+
+def test_a_correction_width_pulls_towards_the_weighted_paths(spiral):
+    # GIVEN every state of a batch moved off the data, with a correction width
+    policy = make_policy(spiral, seed=0)
+    samples = train_module.make_samples(spiral, policy.normalization, no_split(spiral), window=0)
+    samples = samples.to(torch.float64)
+    config = TrainConfig(
+        batch_size=0, position_noise=0.0, correction_share=1.0, correction_width=0.05
+    )
+    draw = train_module._draw_step(policy, samples, config, torch.Generator().manual_seed(3))
+    # THEN each target is the nearest sample's velocity minus k times the averaged pull
+    nearest = samples.nearest(draw.positions)
+    pull = samples.pull(draw.positions, config.correction_width)
+    expected = samples.velocities[nearest] - config.noise_correction * pull
+    torch.testing.assert_close(draw.velocities, expected)

@@ -53,6 +53,55 @@ class Samples:
         _, index = tree.query(query, k=1)
         return torch.as_tensor(index * stride, device=states.device)
 
+    def pull(self, states: Tensor, width: float) -> Tensor:
+        r"""The offsets of states (B, n) from the demonstrated paths, across the direction of
+        travel and averaged over the nearby training samples, shape (B, n):
+
+        .. math:: p(\tilde x) = \sum_j w_j \, (\tilde x - x_j)_{\perp v_j},
+            \qquad w_j \propto \exp\big(-\|\tilde x - x_j\|^2 / (2 \sigma^2)\big),
+
+        with :math:`\perp v_j` the part across :math:`v_j` (all of it where :math:`v_j = 0`)
+        and :math:`\sigma` = ``width``. Where demonstrations run closer together than a few
+        :math:`\sigma` the pull is towards their weighted middle, not towards whichever one
+        is nearest; far from the others it is the offset from the nearest path.
+
+        Over at most :data:`PULL_REFERENCES` training samples, evenly spaced in the samples'
+        order (their spacing along a path stays well under a sigma of a few hundredths), in
+        closed form: with :math:`u_j = v_j / |v_j|`,
+        :math:`p = \tilde x - \sum_j w_j x_j - (\sum_j w_j u_j u_j^\top) \tilde x
+        + \sum_j w_j (x_j \cdot u_j) u_j`, one matrix product of the weights, O(B N n^2).
+
+        Arguments:
+            states: The moved states, shape (B, n).
+            width: sigma > 0, in the samples' coordinates.
+        """
+        positions, moments = (t.to(states) for t in self._pull_references)
+        # -|x - x_j|^2 / (2 sigma^2) up to -|x|^2 / (2 sigma^2), which the normalisation
+        # cancels; exponents below -50 are clamped so that no weight is a (slow) denormal.
+        scale = 1.0 / width**2
+        bias = (-0.5 * scale) * positions.square().sum(-1)
+        logits = torch.addmm(bias, states, positions.T, alpha=scale)
+        weights = (logits - logits.amax(-1, keepdim=True)).clamp_min_(-50.0).exp_()
+        weights = weights / weights.sum(-1, keepdim=True)  # (B, N)
+        n = states.shape[-1]
+        # One product for sum_j w_j x_j, sum_j w_j u_j u_j^T and sum_j w_j (x_j . u_j) u_j.
+        mean, spread, along = (weights @ moments).split([n, n * n, n], dim=-1)
+        return states - mean - (spread.view(-1, n, n) @ states.unsqueeze(-1)).squeeze(-1) + along
+
+    @functools.cached_property
+    def _pull_references(self) -> tuple[Tensor, Tensor]:
+        """The reference samples of :meth:`pull`: positions x_j (N, n), and beside them
+        [x_j, u_j u_j^T flattened, (x_j . u_j) u_j], shape (N, n + n^2 + n), with u_j the unit
+        direction of travel (0 where the velocity is 0)."""
+        stride = max(1, -(-len(self.positions) // PULL_REFERENCES))
+        positions = self.positions[::stride].detach().contiguous()
+        velocities = self.velocities[::stride].detach()
+        speed = velocities.norm(dim=-1, keepdim=True)
+        u = velocities / torch.where(speed > 0, speed, 1.0)
+        outer = (u.unsqueeze(-1) * u.unsqueeze(-2)).flatten(1)
+        along = (positions * u).sum(-1, keepdim=True) * u
+        return positions, torch.cat([positions, outer, along], dim=-1)
+
     @functools.cached_property
     def _reference_tree(self) -> tuple[cKDTree, int]:
         stride = max(1, -(-len(self.positions) // NEAREST_REFERENCES))
@@ -63,6 +112,9 @@ class Samples:
 #: The most training samples :meth:`Samples.nearest` searches (evenly spaced in the samples'
 #: order), so the cost of building its tree does not grow with the data.
 NEAREST_REFERENCES = 8192
+#: The most training samples :meth:`Samples.pull` averages over (evenly spaced in the samples'
+#: order): its cost grows with their number, once per training step.
+PULL_REFERENCES = 1024
 
 
 def make_samples(

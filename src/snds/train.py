@@ -79,6 +79,13 @@ class TrainConfig:
         correction_noise: The standard deviation of those offsets (model coordinates).
         correction_share: The share of each batch's states that is moved and corrected, in
             [0, 1].
+        correction_width: sigma > 0: the offset :math:`(\tilde x - x_j)_\perp` is averaged over
+            the training samples near the moved state, with Gaussian weights of width sigma
+            (model coordinates; :meth:`snds.losses.Samples.pull`), so that between
+            demonstrations closer than a few sigma the pull points to their middle instead of
+            onto whichever is nearest, and a rollout from a start they share does not snap
+            onto one of them. The velocity :math:`v_j` stays the nearest sample's (0: the
+            offset from the nearest sample alone).
         shape_weight: Weight of the penalty :math:`\operatorname{Var}_x \log(V(x) / |x|^2)`
             over 256 random states, uniform in :math:`[-2, 2]^n` (model coordinates): it
             keeps V's sublevel sets round where the data do not ask otherwise, against stiff
@@ -119,6 +126,7 @@ class TrainConfig:
     noise_correction: float = 10.0
     correction_noise: float = 0.005
     correction_share: float = 0.1
+    correction_width: float = 0.04
     shape_weight: float = 0.0
     warp_weight: float = 0.001
     align_weight: float = 0.1
@@ -157,6 +165,7 @@ class TrainConfig:
             "position_noise",
             "noise_correction",
             "correction_noise",
+            "correction_width",
             "shape_weight",
             "warp_weight",
             "align_weight",
@@ -678,7 +687,11 @@ def _corrected(
     moved = x[chosen] + offsets[chosen]
     nearest = samples.nearest(moved)
     anchor, velocity = samples.positions[nearest], samples.velocities[nearest]
-    target = velocity - config.noise_correction * _across(moved - anchor, velocity)
+    if config.correction_width:
+        offset = samples.pull(moved, config.correction_width)
+    else:
+        offset = _across(moved - anchor, velocity)
+    target = velocity - config.noise_correction * offset
     x, v = x.clone(), v.clone()
     x[chosen], v[chosen] = moved, target
     return x, v

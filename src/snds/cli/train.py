@@ -78,7 +78,8 @@ def register(commands: argparse._SubParsersAction) -> None:
         help="gain k (per unit of model time) that pulls states back onto the demonstrated "
         f"paths: a share ({DEFAULT.train.correction_share:g}) of each batch is moved off the "
         f"data (noise {DEFAULT.train.correction_noise:g}) and trained towards the nearest "
-        "sample's velocity minus k times the offset across it (default "
+        "sample's velocity minus k times its offset across the nearby paths (averaged over "
+        f"a width of {DEFAULT.train.correction_width:g}) (default "
         f"{DEFAULT.train.noise_correction:g} for positions, {POSE.train.noise_correction:g} "
         "for SE(3) pose models; 0: off)",
     )
