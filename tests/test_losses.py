@@ -85,15 +85,23 @@ def test_nearest_sample_matches_brute_force_and_survives_a_dtype_change():
     torch.testing.assert_close(converted.nearest(states.double()), found)
 
 
-def _brute_force_pull(states: torch.Tensor, samples: Samples, width: float) -> torch.Tensor:
+def _unit(v: torch.Tensor) -> torch.Tensor:
+    return v / v.norm() if v.norm() > 0 else torch.zeros_like(v)
+
+
+def _brute_force_pull(
+    states: torch.Tensor, samples: Samples, width: float, heading: torch.Tensor
+) -> torch.Tensor:
     """sum_j w_j (x - x_j) across v_j, one state and one sample at a time (float64)."""
     rows = []
-    for x in states.double():
+    for x, h in zip(states.double(), heading.double()):
         offsets = x - samples.positions.double()
-        weights = torch.softmax(-(offsets**2).sum(-1) / (2 * width**2), dim=0)
+        cosines = torch.stack([_unit(h) @ _unit(v) for v in samples.velocities.double()])
+        weights = torch.exp(-(offsets**2).sum(-1) / (2 * width**2)) * cosines.clamp_min(1e-6)
+        weights = weights / weights.sum()
         total = torch.zeros_like(x)
         for w, offset, v in zip(weights, offsets, samples.velocities.double()):
-            u = v / v.norm() if v.norm() > 0 else torch.zeros_like(v)
+            u = _unit(v)
             total += w * (offset - (offset @ u) * u)
         rows.append(total)
     return torch.stack(rows)
@@ -108,10 +116,12 @@ def test_pull_matches_its_definition_sample_by_sample():
     empty = torch.zeros(0, 3)
     samples = Samples(positions, velocities, empty, torch.zeros(0, 1, 3), torch.zeros(0, 1))
     states = positions[:40] + 0.3 * torch.randn(40, 3, generator=generator, dtype=torch.float64)
+    heading = velocities[:40] + 0.5 * torch.randn(40, 3, generator=generator, dtype=torch.float64)
+    heading[::5] = 0.0
     # THEN the closed form equals the weighted sum of the offsets across each direction
     for width in (0.2, 1.0):
-        expected = _brute_force_pull(states, samples, width)
-        torch.testing.assert_close(samples.pull(states, width), expected)
+        expected = _brute_force_pull(states, samples, width, heading)
+        torch.testing.assert_close(samples.pull(states, width, heading), expected)
 
 
 def _two_lanes(gap: float) -> Samples:
@@ -128,7 +138,8 @@ def test_pull_points_to_the_middle_of_close_paths_and_to_the_nearest_of_far_ones
     states = torch.tensor([[0.1, 0.01], [0.2, 0.018], [0.0, -0.03]], dtype=torch.float64)
     # GIVEN two paths 0.02 apart and a width of 0.02: the pull is towards y = 0.01, across
     # the direction of travel only
-    close = _two_lanes(0.02).pull(states, 0.02)
+    heading = torch.tensor([[1.0, 0.0]], dtype=torch.float64).expand(3, 2)
+    close = _two_lanes(0.02).pull(states, 0.02, heading)
     torch.testing.assert_close(close[:, 0], torch.zeros(3, dtype=torch.float64))
     assert abs(close[0, 1]) < 1e-6  # on the middle line: no pull
     # Above the middle: pulled down towards it (the nearest path, y = 0.02, would pull up)
@@ -136,5 +147,23 @@ def test_pull_points_to_the_middle_of_close_paths_and_to_the_nearest_of_far_ones
     # Below both paths: pulled up
     assert close[2, 1] < 0
     # GIVEN the same paths 1.0 apart: the offset from the nearest path, as without a width
-    far = _two_lanes(1.0).pull(states, 0.02)
+    far = _two_lanes(1.0).pull(states, 0.02, heading)
     torch.testing.assert_close(far[:, 1], states[:, 1], atol=1e-9, rtol=0)
+
+
+def test_pull_ignores_a_path_that_crosses_heading_elsewhere():
+    # GIVEN a path along x and one along y crossing it at the origin
+    t = torch.linspace(-1.0, 1.0, 401, dtype=torch.float64)
+    zero = torch.zeros_like(t)
+    positions = torch.cat([torch.stack([t, zero], 1), torch.stack([zero, t], 1)])
+    velocities = torch.cat([torch.tensor([[1.0, 0.0]]), torch.tensor([[0.0, 1.0]])])
+    velocities = velocities.double().repeat_interleave(401, dim=0)
+    empty = torch.zeros(0, 2)
+    samples = Samples(positions, velocities, empty, torch.zeros(0, 1, 2), torch.zeros(0, 1))
+    states = torch.tensor([[0.01, 0.015], [-0.02, -0.01]], dtype=torch.float64)
+    # THEN a state heading along x is pulled onto the x path only (its y offset), and one
+    # heading along y onto the y path only
+    along_x = samples.pull(states, 0.04, torch.tensor([[1.0, 0.0]]).double().expand(2, 2))
+    torch.testing.assert_close(along_x, torch.stack([zero[:2], states[:, 1]], 1), atol=1e-4, rtol=0)
+    along_y = samples.pull(states, 0.04, torch.tensor([[0.0, 1.0]]).double().expand(2, 2))
+    torch.testing.assert_close(along_y, torch.stack([states[:, 0], zero[:2]], 1), atol=1e-4, rtol=0)

@@ -436,6 +436,7 @@ def test_a_correction_width_pulls_towards_the_weighted_paths(spiral):
     draw = train_module._draw_step(policy, samples, config, torch.Generator().manual_seed(3))
     # THEN each target is the nearest sample's velocity minus k times the averaged pull
     nearest = samples.nearest(draw.positions)
-    pull = samples.pull(draw.positions, config.correction_width)
-    expected = samples.velocities[nearest] - config.noise_correction * pull
+    velocity = samples.velocities[nearest]
+    pull = samples.pull(draw.positions, config.correction_width, velocity)
+    expected = velocity - config.noise_correction * pull
     torch.testing.assert_close(draw.velocities, expected)

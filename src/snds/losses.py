@@ -53,17 +53,20 @@ class Samples:
         _, index = tree.query(query, k=1)
         return torch.as_tensor(index * stride, device=states.device)
 
-    def pull(self, states: Tensor, width: float) -> Tensor:
-        r"""The offsets of states (B, n) from the demonstrated paths, across the direction of
-        travel and averaged over the nearby training samples, shape (B, n):
+    def pull(self, states: Tensor, width: float, heading: Tensor) -> Tensor:
+        r"""The offsets of states (B, n) from the demonstrated paths that travel their way,
+        across the direction of travel and averaged over the nearby training samples, shape
+        (B, n):
 
         .. math:: p(\tilde x) = \sum_j w_j \, (\tilde x - x_j)_{\perp v_j},
-            \qquad w_j \propto \exp\big(-\|\tilde x - x_j\|^2 / (2 \sigma^2)\big),
+            \qquad w_j \propto \exp\big(-\|\tilde x - x_j\|^2 / (2 \sigma^2)\big)
+            \max(\cos(h, v_j), 10^{-6}),
 
-        with :math:`\perp v_j` the part across :math:`v_j` (all of it where :math:`v_j = 0`)
-        and :math:`\sigma` = ``width``. Where demonstrations run closer together than a few
-        :math:`\sigma` the pull is towards their weighted middle, not towards whichever one
-        is nearest; far from the others it is the offset from the nearest path.
+        with :math:`\perp v_j` the part across :math:`v_j` (all of it where :math:`v_j = 0`),
+        :math:`\sigma` = ``width`` and h the state's ``heading``. Where demonstrations run
+        side by side closer than a few :math:`\sigma` the pull is towards their weighted
+        middle, not onto whichever one is nearest; where they cross, the paths heading
+        elsewhere hardly count; far from the others it is the offset from the nearest path.
 
         Over at most :data:`PULL_REFERENCES` training samples, evenly spaced in the samples'
         order (their spacing along a path stays well under a sigma of a few hundredths), in
@@ -74,13 +77,19 @@ class Samples:
         Arguments:
             states: The moved states, shape (B, n).
             width: sigma > 0, in the samples' coordinates.
+            heading: Each state's direction of travel, shape (B, n) (any length; a zero
+                heading weighs every direction alike).
         """
-        positions, moments = (t.to(states) for t in self._pull_references)
+        positions, directions, moments = (t.to(states) for t in self._pull_references)
         # -|x - x_j|^2 / (2 sigma^2) up to -|x|^2 / (2 sigma^2), which the normalisation
-        # cancels; exponents below -50 are clamped so that no weight is a (slow) denormal.
+        # cancels, plus the log of the direction factor; exponents below -50 are clamped so
+        # that no weight is a (slow) denormal.
         scale = 1.0 / width**2
         bias = (-0.5 * scale) * positions.square().sum(-1)
         logits = torch.addmm(bias, states, positions.T, alpha=scale)
+        length = heading.norm(dim=-1, keepdim=True)
+        cosines = (heading / torch.where(length > 0, length, 1.0)) @ directions.T
+        logits = logits + cosines.clamp_min(1e-6).log()
         weights = (logits - logits.amax(-1, keepdim=True)).clamp_min_(-50.0).exp_()
         weights = weights / weights.sum(-1, keepdim=True)  # (B, N)
         n = states.shape[-1]
@@ -89,10 +98,10 @@ class Samples:
         return states - mean - (spread.view(-1, n, n) @ states.unsqueeze(-1)).squeeze(-1) + along
 
     @functools.cached_property
-    def _pull_references(self) -> tuple[Tensor, Tensor]:
-        """The reference samples of :meth:`pull`: positions x_j (N, n), and beside them
-        [x_j, u_j u_j^T flattened, (x_j . u_j) u_j], shape (N, n + n^2 + n), with u_j the unit
-        direction of travel (0 where the velocity is 0)."""
+    def _pull_references(self) -> tuple[Tensor, Tensor, Tensor]:
+        """The reference samples of :meth:`pull`: positions x_j (N, n), unit directions of
+        travel u_j (N, n; 0 where the velocity is 0), and [x_j, u_j u_j^T flattened,
+        (x_j . u_j) u_j], shape (N, n + n^2 + n)."""
         stride = max(1, -(-len(self.positions) // PULL_REFERENCES))
         positions = self.positions[::stride].detach().contiguous()
         velocities = self.velocities[::stride].detach()
@@ -100,7 +109,7 @@ class Samples:
         u = velocities / torch.where(speed > 0, speed, 1.0)
         outer = (u.unsqueeze(-1) * u.unsqueeze(-2)).flatten(1)
         along = (positions * u).sum(-1, keepdim=True) * u
-        return positions, torch.cat([positions, outer, along], dim=-1)
+        return positions, u, torch.cat([positions, outer, along], dim=-1)
 
     @functools.cached_property
     def _reference_tree(self) -> tuple[cKDTree, int]:

@@ -81,11 +81,12 @@ class TrainConfig:
             [0, 1].
         correction_width: sigma > 0: the offset :math:`(\tilde x - x_j)_\perp` is averaged over
             the training samples near the moved state, with Gaussian weights of width sigma
-            (model coordinates; :meth:`snds.losses.Samples.pull`), so that between
-            demonstrations closer than a few sigma the pull points to their middle instead of
-            onto whichever is nearest, and a rollout from a start they share does not snap
-            onto one of them. The velocity :math:`v_j` stays the nearest sample's (0: the
-            offset from the nearest sample alone).
+            (model coordinates) and by how well their direction of travel agrees with the
+            nearest sample's (:meth:`snds.losses.Samples.pull`), so that between
+            demonstrations running side by side closer than a few sigma the pull points to
+            their middle instead of onto whichever is nearest, and a rollout from a start they
+            share does not snap onto one of them. The velocity :math:`v_j` stays the nearest
+            sample's (0: the offset from the nearest sample alone).
         shape_weight: Weight of the penalty :math:`\operatorname{Var}_x \log(V(x) / |x|^2)`
             over 256 random states, uniform in :math:`[-2, 2]^n` (model coordinates): it
             keeps V's sublevel sets round where the data do not ask otherwise, against stiff
@@ -688,7 +689,7 @@ def _corrected(
     nearest = samples.nearest(moved)
     anchor, velocity = samples.positions[nearest], samples.velocities[nearest]
     if config.correction_width:
-        offset = samples.pull(moved, config.correction_width)
+        offset = samples.pull(moved, config.correction_width, velocity)
     else:
         offset = _across(moved - anchor, velocity)
     target = velocity - config.noise_correction * offset
