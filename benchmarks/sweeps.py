@@ -18,7 +18,9 @@ again, though their models are not there for the streamline figure.
 
 A sweep's rows come from one commit: ``provenance.json`` beside them records it (with its
 ``src/`` tree, the wall time and where the runs ran), and resuming with another ``src/``, or
-with uncommitted changes there, is refused. ``--scheduler`` runs on a Dask cluster::
+with uncommitted changes there, is refused. ``--scheduler`` runs on a Dask cluster, and keeps
+each run's start and stop from its task stream (``tasks.jsonl``, read by
+``cluster_scaling.py``)::
 
     dask scheduler --host 127.0.0.1 --port 8786 &
     dask worker tcp://127.0.0.1:8786 --nworkers 2 --nthreads 1 &
@@ -38,6 +40,7 @@ import time
 from pathlib import Path
 
 from _readme import shrink_png, write_readme_section
+from cluster_scaling import TASKS, collect, task_stream
 
 from snds.benchmark import (
     SweepSettings,
@@ -64,6 +67,7 @@ COPIED = (
     "results.jsonl",
     "sweep.json",
     PROVENANCE,
+    TASKS,
     "summary.md",
     "mse_violin.png",
     "dtw_violin.png",
@@ -148,6 +152,8 @@ def run(name: str, args: argparse.Namespace, settings: SweepSettings) -> str:
         record["part_started"] = time.time()
     write_json(out / PROVENANCE, record)
     rows = run_sweep(tasks, out=out, settings=settings, jobs=args.jobs, scheduler=args.scheduler)
+    if args.scheduler and pending:
+        collect(task_stream(args.scheduler), out)  # each run's start and stop, for scaling
     if pending:
         started = record.pop("part_started")
         record["wall_seconds"] = record.get("wall_seconds", 0.0) + time.time() - started
@@ -213,6 +219,8 @@ def main() -> None:
     args = parser.parse_args()
     settings = SweepSettings(rollouts=args.rollouts, samples=args.samples)
     machine = f"{platform.machine()}, {os.cpu_count()} cores, {platform.platform()}"
+    if args.scheduler and not args.done_only:
+        task_stream(args.scheduler)  # the scheduler records its task stream from now on
     for name in args.only:
         paragraph = run(name, args, settings)
         if not args.no_readme:
