@@ -26,6 +26,8 @@ from pathlib import Path
 
 from _readme import write_readme_section
 
+from snds.benchmark import MOTION_GROUPS
+
 #: The published stable methods a user would pick instead of SNDS.
 BASELINES = ("sdsef", "lpvds", "seds")
 #: SNDS's network without the projection: the unconstrained control.
@@ -45,8 +47,14 @@ def _sd(rows: list[dict], key: str) -> float:
     return statistics.stdev(row[key] for row in rows) if len(rows) > 1 else 0.0
 
 
+def _order(motion: str) -> tuple[int, str]:
+    """The paper's order of its motions (its Fig. 4), then the rest by name."""
+    paper = MOTION_GROUPS["paper8"] + MOTION_GROUPS["multi"]
+    return (paper.index(motion), "") if motion in paper else (len(paper), motion)
+
+
 def compare(snds_rows: list[dict], base_rows: list[dict]) -> list[dict]:
-    """One record per motion of the SNDS rows, in their order of first appearance."""
+    """One record per motion of the SNDS rows, in the paper's order."""
     base: dict[tuple[str, str], list[dict]] = defaultdict(list)
     for row in base_rows:
         base[(row["motion"], row["method"])].append(row)
@@ -55,7 +63,7 @@ def compare(snds_rows: list[dict], base_rows: list[dict]) -> list[dict]:
         if row["method"] == "snds":
             ours[row["motion"]].append(row)
     records = []
-    for motion, rows in ours.items():
+    for motion, rows in sorted(ours.items(), key=lambda item: _order(item[0])):
         methods = [m for m in BASELINES if base[(motion, m)]]
         dtw = {m: _mean(base[(motion, m)], "dtw_paper") for m in methods}
         mse = {m: _mean(base[(motion, m)], "velocity_mse_paper") for m in methods}
