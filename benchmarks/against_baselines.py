@@ -65,6 +65,8 @@ def compare(snds_rows: list[dict], base_rows: list[dict]) -> list[dict]:
     records = []
     for motion, rows in sorted(ours.items(), key=lambda item: _order(item[0])):
         methods = [m for m in BASELINES if base[(motion, m)]]
+        if not methods:
+            continue  # no baseline has run on this motion yet
         dtw = {m: _mean(base[(motion, m)], "dtw_paper") for m in methods}
         mse = {m: _mean(base[(motion, m)], "velocity_mse_paper") for m in methods}
         best_dtw, best_mse = min(dtw, key=dtw.get), min(mse, key=mse.get)
