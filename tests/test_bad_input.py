@@ -198,6 +198,12 @@ def never_move(folder: Path):
     return ["train", "--data", str(path)], lambda: Normalization.fit(load_demonstrations(path))
 
 
+def below_float32(folder: Path):
+    path = folder / "tiny.csv"
+    path.write_text("demo,t,x1,x2\n0,0,1e-60,0\n0,1,0,0\n")
+    return ["train", "--data", str(path)], lambda: Normalization.fit(load_demonstrations(path))
+
+
 CASES: dict[str, Case] = {
     "empty file": Case(data_file("empty.csv", text("")), DataError, "empty.csv: file is empty"),
     "wrong extension": Case(
@@ -247,6 +253,11 @@ CASES: dict[str, Case] = {
     ),
     "demos that never move": Case(
         never_move, DataError, "still.csv: demonstrations have zero extent"
+    ),
+    "demos below float32": Case(
+        below_float32,
+        DataError,
+        r"tiny(\.csv)?: the demonstrations' extent is 1e-60, outside the float32 range",
     ),
     "pose not a unit quaternion": Case(
         pose_file("norm.csv", _poses_with(0, [0, 0, 0, 2])),

@@ -8,6 +8,9 @@ import numpy as np
 
 from snds.errors import DataError
 
+_FLOAT32_TINY = float(np.finfo(np.float32).tiny)
+_FLOAT32_MAX = float(np.finfo(np.float32).max)
+
 
 def _as_float_array(value: np.ndarray, name: str, ndim: int) -> np.ndarray:
     array = np.asarray(value, dtype=np.float64)
@@ -218,6 +221,19 @@ class Normalization:
             )
         if speed <= 0:
             raise DataError(f"{named}demonstrations never move (every velocity is zero)")
+        # A float32 policy holds the scales as float32 numbers: one that rounds to 0 or inf
+        # there would turn every state into NaN.
+        for what, value in (
+            ("extent", length),
+            ("top speed", speed),
+            ("time scale", length / speed),
+        ):
+            if not _FLOAT32_TINY <= value <= _FLOAT32_MAX:
+                raise DataError(
+                    f"{named}the demonstrations' {what} is {value:.3g}, outside the float32 "
+                    f"range [{_FLOAT32_TINY:.3g}, {_FLOAT32_MAX:.3g}]: give the data in other "
+                    "units"
+                )
         return cls(center=demos.target, length=length, time=length / speed)
 
     def positions_to_model(self, x: np.ndarray) -> np.ndarray:
