@@ -39,7 +39,7 @@ import snds
 from snds.data import DataSource
 from snds.data.demonstrations import Demonstration, Demonstrations
 from snds.evaluate import evaluate, path_reference
-from snds.metrics import frechet
+from snds.metrics import dtw, frechet
 from snds.policy import float64_copy
 from snds.rollout import rollout_numpy
 
@@ -55,6 +55,8 @@ DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
 
 def load(task):
+    if task not in TASKS:  # a LASA motion
+        return DataSource(motion=task).load()
     file, select = TASKS[task]
     return DataSource(file=DATA / file, demos=select).load()
 
@@ -93,7 +95,7 @@ def bars(policy, demos, base, offset=0.0, seed=0):
     n = base.dim
     extent = base.extent()
     rng = np.random.default_rng(seed)
-    fr, fr15, ends = [], [], []
+    fr, fr15, ends, dtws = [], [], [], []
     for d, b in zip(demos, base, strict=True):
         dt = d.duration / (len(d.times) - 1)
         steps = int(np.ceil(1.5 * d.duration / dt))
@@ -103,9 +105,10 @@ def bars(policy, demos, base, offset=0.0, seed=0):
         path = rollout_numpy(p64, start, dt=dt, steps=steps)[0][:, :n]
         ref = path_reference(b)
         fr.append(frechet(path[: len(d.times)], ref) / extent)
+        dtws.append(dtw(path[: len(d.times)], ref))
         fr15.append(frechet(path, ref) / extent)
         ends.append(float(np.linalg.norm(path[-1] - base.target)))
-    return max(fr), max(fr15), max(ends)
+    return max(fr), max(fr15), max(ends), float(np.mean(dtws))
 
 
 class NearestSample(torch.nn.Module):
@@ -208,7 +211,7 @@ def table(files: list[str]) -> str:
 def main():
     p = argparse.ArgumentParser()
     p.add_argument("--table", nargs="*", help="print the table of these rows files and stop")
-    p.add_argument("--tasks", nargs="*", default=list(TASKS))
+    p.add_argument("--tasks", nargs="*", default=list(TASKS), help="tasks or LASA motions")
     p.add_argument("--seeds", type=int, nargs="*", default=[0, 1, 2])
     p.add_argument("--alpha", type=float, default=1.0)
     p.add_argument("--kind", default="linear")
@@ -237,7 +240,7 @@ def main():
             cpu = time.process_time() - t0
             if args.nominal == "nearest":
                 use_nearest(policy, demos, args.gain, args.width)
-            f1, f15, end = bars(policy, demos, base, args.start_offset, seed)
+            f1, f15, end, mean_dtw = bars(policy, demos, base, args.start_offset, seed)
             row = dict(
                 task=task,
                 seed=seed,
@@ -254,6 +257,7 @@ def main():
                 frechet=f1,
                 frechet15=f15,
                 end_m=end,
+                dtw=mean_dtw,
                 train_cpu=cpu,
             )
             if args.check:
