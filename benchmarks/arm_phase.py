@@ -88,9 +88,26 @@ def with_phase(demos: Demonstrations, alpha: float, kind: str, codes: int = 1) -
     return Demonstrations(tuple(out), np.append(demos.target, np.zeros(codes)), demos.name)
 
 
-def bars(policy, demos, base, offset=0.0, seed=0):
+def held_rollout(policy, start, dt, steps, n, held):
+    """Positions (steps + held + 1, n) of a rollout whose positions are held still for ``held``
+    steps from 30 % of the way (the rest of the state moving on), as a person holding the arm."""
+    if not held:
+        return rollout_numpy(policy, start, dt=dt, steps=steps)[0][:, :n]
+    before = int(0.3 * steps)
+    parts = [rollout_numpy(policy, start, dt=dt, steps=before)[0]]
+    state = parts[0][-1:].copy()
+    for _ in range(held):
+        state = rollout_numpy(policy, state, dt=dt, steps=1)[0][-1:].copy()
+        state[0, :n] = parts[0][-1, :n]
+        parts.append(state.copy())
+    parts.append(rollout_numpy(policy, state, dt=dt, steps=steps - before)[0][1:])
+    return np.concatenate(parts)[:, :n]
+
+
+def bars(policy, demos, base, offset=0.0, seed=0, hold=0.0):
     """Worst Fréchet / extent (1.0x, 1.5x the duration) and end distance of rollouts from each
-    demonstration's start, moved by ``offset`` times the extent in a random direction."""
+    demonstration's start, moved by ``offset`` times the extent in a random direction, with the
+    positions held for ``hold`` times the duration (see :func:`held_rollout`)."""
     p64 = float64_copy(policy)
     n = base.dim
     extent = base.extent()
@@ -102,7 +119,7 @@ def bars(policy, demos, base, offset=0.0, seed=0):
         start = d.states[:1].copy()
         direction = rng.normal(size=n)
         start[0, :n] += offset * extent * direction / np.linalg.norm(direction)
-        path = rollout_numpy(p64, start, dt=dt, steps=steps)[0][:, :n]
+        path = held_rollout(p64, start, dt, steps, n, int(hold * len(d.times)))
         ref = path_reference(b)
         fr.append(frechet(path[: len(d.times)], ref) / extent)
         dtws.append(dtw(path[: len(d.times)], ref))
@@ -218,6 +235,7 @@ def main():
     p.add_argument("--codes", type=int, default=1, help="numbers of the phase (see with_phase)")
     p.add_argument("--check", action="store_true")
     p.add_argument("--tag", default="")
+    p.add_argument("--hold", type=float, default=0.0, help="positions held, x duration")
     p.add_argument("--start-offset", type=float, default=0.0, help="starts moved, x extent")
     p.add_argument("--nominal", choices=["trained", "nearest"], default="trained")
     p.add_argument("--gain", type=float, default=10.0, help="pull of --nominal nearest, 1/s")
@@ -240,7 +258,7 @@ def main():
             cpu = time.process_time() - t0
             if args.nominal == "nearest":
                 use_nearest(policy, demos, args.gain, args.width)
-            f1, f15, end, mean_dtw = bars(policy, demos, base, args.start_offset, seed)
+            f1, f15, end, mean_dtw = bars(policy, demos, base, args.start_offset, seed, args.hold)
             row = dict(
                 task=task,
                 seed=seed,
@@ -251,6 +269,7 @@ def main():
                 policy=args.policy,
                 train=args.train,
                 start_offset=args.start_offset,
+                hold=args.hold,
                 nominal=args.nominal
                 if args.nominal == "trained"
                 else f"nearest{args.gain:g}" + (f"-w{args.width:g}" if args.width else ""),
