@@ -181,6 +181,35 @@ def use_nearest(policy, demos, gain, width=0.0):
     policy.nominal = types.MethodType(lambda self, x: self.nearest(x), policy)
 
 
+class PhaseGate(torch.nn.Module):
+    """g(z) = exp(-(d(z) / sigma)^2), d the distance to the nearest training state: 1 on the
+    data, towards 0 where the phase has run on without the positions (an arm held)."""
+
+    def __init__(self, states, width):
+        super().__init__()
+        self.register_buffer("states", states)
+        self.width = width
+
+    def forward(self, z):
+        flat = z.reshape(-1, z.shape[-1])
+        d = torch.cat([torch.cdist(c, self.states).amin(1) for c in flat.split(4096)])
+        return torch.exp(-((d / self.width) ** 2)).reshape(*z.shape[:-1], 1)
+
+
+def use_phase_stop(policy, demos, n, width):
+    """Scale the phase's part of the nominal f by :class:`PhaseGate` (V's projection follows,
+    so the decrease condition still holds)."""
+    states = torch.tensor(np.concatenate([d.states for d in demos]), dtype=torch.float32)
+    with torch.no_grad():
+        policy.phase_gate = PhaseGate(policy.to_model(states), width)
+
+    def nominal(self, x):
+        f = type(self).nominal(self, x)
+        return torch.cat([f[..., :n], self.phase_gate(x) * f[..., n:]], dim=-1)
+
+    policy.nominal = types.MethodType(nominal, policy)
+
+
 def overrides(pairs: list[str]) -> dict:
     """``key=value`` pairs, the values read as JSON (numbers, lists) or else kept as text."""
     out = {}
@@ -235,6 +264,7 @@ def main():
     p.add_argument("--codes", type=int, default=1, help="numbers of the phase (see with_phase)")
     p.add_argument("--check", action="store_true")
     p.add_argument("--tag", default="")
+    p.add_argument("--phase-stop", type=float, default=0.0, help="PhaseGate width, model units")
     p.add_argument("--hold", type=float, default=0.0, help="positions held, x duration")
     p.add_argument("--start-offset", type=float, default=0.0, help="starts moved, x extent")
     p.add_argument("--nominal", choices=["trained", "nearest"], default="trained")
@@ -256,6 +286,8 @@ def main():
             t0 = time.process_time()
             snds.fit(policy, demos, split, snds.TrainConfig(seed=seed, **overrides(args.train)))
             cpu = time.process_time() - t0
+            if args.phase_stop:
+                use_phase_stop(policy, demos, base.dim, args.phase_stop)
             if args.nominal == "nearest":
                 use_nearest(policy, demos, args.gain, args.width)
             f1, f15, end, mean_dtw = bars(policy, demos, base, args.start_offset, seed, args.hold)
@@ -270,6 +302,7 @@ def main():
                 train=args.train,
                 start_offset=args.start_offset,
                 hold=args.hold,
+                phase_stop=args.phase_stop,
                 nominal=args.nominal
                 if args.nominal == "trained"
                 else f"nearest{args.gain:g}" + (f"-w{args.width:g}" if args.width else ""),
