@@ -19,6 +19,12 @@ velocity of the nearest training sample, pulled back across its direction of tra
 projection are kept, so the decrease condition holds for it as for any f (``--check``
 measures it).
 
+``--codes M`` appends phi(t) c_d instead, c_d a random unit vector of M numbers per
+demonstration (it says which demonstration is followed); ``--start-offset R`` moves each start
+by R extents; ``--hold F`` holds the positions still for F durations 30 % of the way (the
+phase running on); ``--phase-stop SIGMA`` slows the phase's part of f off the data
+(:class:`PhaseGate`); LASA motion names are tasks too.
+
 Rows (each records its options): ``results/arm-phase/``; the seed-0 screen of variants in
 ``screen-seed0.jsonl``.
 """
