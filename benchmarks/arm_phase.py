@@ -40,6 +40,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from arm_floor import DATA, TASKS
 
 import snds
 from snds.data import DataSource
@@ -48,16 +49,6 @@ from snds.evaluate import evaluate, path_reference
 from snds.metrics import dtw, frechet
 from snds.policy import float64_copy
 from snds.rollout import rollout_numpy
-
-TASKS = {
-    "3D-pick-box_(0,2)": ("3D-pick-box.mat", (0, 2)),
-    "3D-pick-box_(1,3)": ("3D-pick-box.mat", (1, 3)),
-    "3D_Cshape_top": ("3D_Cshape_top.mat", None),
-    "3D_sink": ("3D_sink.mat", None),
-    "3D_viapoint_1": ("3D_viapoint_1.mat", None),
-    "Messy_snake": ("Messy_snake.mat", None),
-}
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
 
 def load(task):
