@@ -21,9 +21,13 @@ decrease violations in its stability check (read from the run's ``metrics.json``
 
     python benchmarks/reliability.py --part real --seeds 3
     python benchmarks/arm_bars.py runs/reliability/real --seeds 3
+    python benchmarks/reliability.py --part real --seeds 3 --recipe phase   # with a phase
+    python benchmarks/arm_bars.py runs/reliability-phase/real --section arm-bars-phase \
+        --out benchmarks/results/arm-bars-phase.json
 
 Writes ``benchmarks/results/arm-bars.json`` (``--out``: elsewhere) and the ``arm-bars`` table
-of ``benchmarks/README.md`` (``--no-readme``: not). The demonstrations are loaded as each model
+of ``benchmarks/README.md`` (``--section``: another; ``--no-readme``: none). A model with a
+phase (:mod:`snds.phase`) is measured on its positions. The demonstrations are loaded as each model
 records (a model trained since gap filling records ``gaps``, see
 :func:`snds.data.files.load_mat`; an older one is measured on re-timed gaps, as it was trained).
 """
@@ -56,16 +60,22 @@ def measure(run: Path) -> dict:
     source = DataSource.from_record(description["data"])
     demos = source.load()
     policy = float64_copy(policy)
+    # A model with a phase (snds.phase) is compared on its positions, as its metrics are.
+    positions = policy.space.positions
     extent = demos.extent()
     paths = reproduce(policy, demos, list(range(len(demos))))
-    frechets = [frechet(p, path_reference(d)) / extent for p, d in zip(paths, demos, strict=True)]
+    frechets = [
+        frechet(positions(p), positions(path_reference(d))) / extent
+        for p, d in zip(paths, demos, strict=True)
+    ]
     ends, run_out = [], []
+    target = positions(np.asarray(demos.target))
     for demo in demos:
         dt = demo.duration / (len(demo.times) - 1)
         steps = int(np.ceil(1.5 * demo.duration / dt))
-        path = rollout_numpy(policy, demo.states[:1], dt=dt, steps=steps)[0]
-        ends.append(float(np.linalg.norm(path[-1] - np.asarray(demos.target))))
-        run_out.append(frechet(path, path_reference(demo)) / extent)
+        path = positions(rollout_numpy(policy, demo.states[:1], dt=dt, steps=steps)[0])
+        ends.append(float(np.linalg.norm(path[-1] - target)))
+        run_out.append(frechet(path, positions(path_reference(demo))) / extent)
     metrics = json.loads((run / "metrics.json").read_text())
     stability = metrics["stability"]
     row = {
@@ -144,6 +154,7 @@ def main() -> None:
     parser.add_argument("runs", type=Path, help="a reliability run's real/ folder")
     parser.add_argument("--seeds", type=int, default=3, help="the first N seeds of each task")
     parser.add_argument("--no-readme", action="store_true")
+    parser.add_argument("--section", default="arm-bars", help="the README block to write")
     parser.add_argument(
         "--out", type=Path, default=HERE / "results" / "arm-bars.json", help="the JSON rows"
     )
@@ -159,7 +170,7 @@ def main() -> None:
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps({"runs": str(args.runs), "rows": rows}, indent=1) + "\n")
     if not args.no_readme:
-        write_readme_section("arm-bars", table(rows, args.runs))
+        write_readme_section(args.section, table(rows, args.runs))
 
 
 if __name__ == "__main__":

@@ -18,6 +18,7 @@ rollouts from the 3x box, 20,000 decrease samples in the 10x box (float64).
     python benchmarks/reliability.py                  # both parts; resumes
     python benchmarks/reliability.py --part real --seeds 2
     python benchmarks/reliability.py --recipe convex  # the convex V of before 2026-12-02
+    python benchmarks/reliability.py --part real --seeds 3 --recipe phase  # --phase-codes 3
 
 Runs go to ``runs/reliability/{lasa,real}/`` (``runs/reliability-RECIPE`` for a recipe; models
 included); rows, a per-task summary and the README table go to
@@ -68,6 +69,8 @@ RECIPES: dict[str, list[str]] = {
     "default": [],
     # The defaults before 2026-12-02: a convex V trained on the demonstrated states.
     "convex": ["--warp-layers", "0", "--warp-weight", "0", "--position-noise", "0"],
+    # A phase of 3 numbers in the state (snds.phase): for recordings whose paths cross.
+    "phase": ["--phase-codes", "3"],
 }
 
 

@@ -105,6 +105,7 @@ def _record(config: TrainConfig, result: TrainResult) -> dict:
 
 
 def _position_policy(demos: Demonstrations, *, config: PolicyConfig, seed: int) -> StablePolicy:
+    config = replace(config, phase_dim=demos.phase_dim)
     return StablePolicy(
         dim=demos.dim, normalization=Normalization.fit(demos), config=config, seed=seed
     )

@@ -398,9 +398,10 @@ def plot_all(
             )
         )
     if p == 3:
+        # Orientation frames where the space has an angle error (poses).
         orientations = (
             {}
-            if positions_only
+            if len(space.error_names) == 1
             else {
                 "demo_orientations": [demo.states[:, p:] for demo in demos],
                 "rollout_orientations": [r[:, p:] for r in rollouts],
@@ -408,7 +409,7 @@ def plot_all(
         )
         paths.append(
             plot_paths_3d(
-                [demo.positions for demo in demos],
+                [demo.positions[:, :p] for demo in demos],
                 [r[:, :p] for r in rollouts],
                 space.positions(np.asarray(demos.target)),
                 out / "paths3d.png",

@@ -20,7 +20,7 @@ from torch import Tensor, nn
 from snds.data.demonstrations import Normalization
 from snds.errors import ConfigError
 from snds.nn import MLP, EuclideanizingFlow, Lyapunov, WarpedLyapunov
-from snds.spaces import Euclidean, Space
+from snds.spaces import Euclidean, Phased, Space
 
 #: Coupling layers of V's warp when :attr:`PolicyConfig.warp_layers` is None and n >= 2.
 DEFAULT_WARP_LAYERS = 4
@@ -117,6 +117,9 @@ class PolicyConfig:
         warp_scale: Standard deviation of their frequencies, per unit of model coordinates.
         rectifier: r in the projection ("relu" as in the paper, or "softplus").
         stable: False gives the unconstrained policy pi = f (behavioural cloning).
+        phase_dim: How many trailing numbers of a state are a phase (:mod:`snds.phase`;
+            0: none). :func:`snds.make_policy` takes it from the demonstrations; the policy's
+            :attr:`~Policy.space` is then :class:`~snds.spaces.Phased`.
     """
 
     hidden: tuple[int, ...] = (128, 128)
@@ -138,6 +141,7 @@ class PolicyConfig:
     warp_scale: float = 1.0
     rectifier: str = "relu"
     stable: bool = True
+    phase_dim: int = 0
 
     #: Fields added after models were first saved, with the value that reproduces those models
     #: (a model.json without the field predates it): the near-target decay and the warp were
@@ -425,6 +429,10 @@ class StablePolicy(Policy):
             # Behavioural cloning never evaluates V, so its warp would be dead weight.
             wanted = dim >= 2 and config.stable
             config = replace(config, warp_layers=DEFAULT_WARP_LAYERS if wanted else 0)
+        if type(config.phase_dim) is not int or not 0 <= config.phase_dim < dim:
+            raise ConfigError(
+                f"phase_dim must be an integer in [0, {dim}), got {config.phase_dim!r}"
+            )
         self.config = config
         self.nominal_net = MLP(
             dim,
@@ -464,6 +472,13 @@ class StablePolicy(Policy):
             self.register_buffer("anchors", torch.full((config.anchors, dim), _NO_ANCHOR))
         else:
             self.anchors = None
+
+    @property
+    def space(self) -> Space:
+        """:math:`\\mathbb{R}^n`, or positions then a phase (:class:`~snds.spaces.Phased`)."""
+        if self.config.phase_dim:
+            return Phased(self.dim, self.config.phase_dim)
+        return Euclidean(self.dim)
 
     def set_anchors(self, positions: Tensor) -> None:
         """Places the anchors on ``config.anchors`` of the training states (model coordinates,

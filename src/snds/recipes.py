@@ -11,7 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from snds.policy import PolicyConfig
-from snds.spaces import SE3, Euclidean, Space
+from snds.spaces import SE3, Euclidean, Phased, Space
 from snds.train import TrainConfig
 
 __all__ = ["ARCHITECTURES", "RECIPES", "SPACE_RECIPES", "Recipe", "recipe_for"]
@@ -54,10 +54,10 @@ RECIPES: dict[str, Recipe] = {
 ARCHITECTURES: tuple[str, ...] = ("default", "compact")
 
 #: The recipe whose training settings each state space trains with by default.
-SPACE_RECIPES: dict[type[Space], str] = {Euclidean: "default", SE3: "pose"}
+SPACE_RECIPES: dict[type[Space], str] = {Euclidean: "default", Phased: "default", SE3: "pose"}
 
 
 def recipe_for(space: Space) -> Recipe:
     """The recipe a policy in ``space`` trains with by default (:data:`SPACE_RECIPES`):
-    ``default`` for positions, ``pose`` for SE(3)."""
+    ``default`` for positions (with a phase or not), ``pose`` for SE(3)."""
     return RECIPES[SPACE_RECIPES[type(space)]]

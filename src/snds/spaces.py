@@ -10,6 +10,9 @@ and angle for a pose), what scale each of those has for a task of a given extent
 random states are drawn; everything else is one code path.
 
 - :class:`Euclidean`: positions :math:`x \in \mathbb{R}^n`; :math:`x + h v`.
+- :class:`Phased`: positions :math:`x \in \mathbb{R}^n` followed by a phase
+  :math:`\psi \in \mathbb{R}^m` (:mod:`snds.phase`); a step is the Euclidean one, the
+  errors are the positions' alone.
 - :class:`SE3`: poses :math:`(p, q)` of a position and a unit quaternion (x, y, z, w), 7
   numbers; velocities are twists :math:`(v, \omega)` with the angular velocity in the world
   frame; a step is :math:`p + h v`, :math:`\exp(h \omega)\, q` (so orientations stay on
@@ -29,7 +32,7 @@ from torch import Tensor
 
 from snds.so3 import random_quaternions, relative_rotvec, rotate
 
-__all__ = ["SE3", "Euclidean", "Space"]
+__all__ = ["SE3", "Euclidean", "Phased", "Space"]
 
 
 class Space(ABC):
@@ -163,6 +166,63 @@ class Euclidean(Space):
         self, center: np.ndarray, half_width: float, count: int, rng: np.random.Generator
     ) -> np.ndarray:
         return _grid(np.asarray(center, dtype=np.float64), half_width, count)
+
+
+@dataclass(frozen=True)
+class Phased(Euclidean):
+    r"""Positions in :math:`\mathbb{R}^p` followed by a phase of m numbers that runs to 0
+    (:mod:`snds.phase`): a state has dim = p + m numbers, a step is :math:`x + h v`.
+
+    The errors, their scales and so every metric and tolerance are the positions'; random
+    states draw the phase uniform in the same cube as the positions' offsets, which holds
+    every phase a demonstration starts with (|psi| <= the extent).
+
+    Attributes:
+        dim: p + m.
+        phase_dim: m.
+    """
+
+    dim: int
+    phase_dim: int
+    velocity_names: ClassVar[tuple[str, ...]] = ("velocity", "phase_rate")
+
+    @property
+    def position_dim(self) -> int:  # type: ignore[override]
+        return self.dim - self.phase_dim
+
+    @property
+    def velocity_sizes(self) -> tuple[int, ...]:  # type: ignore[override]
+        return (self.position_dim, self.phase_dim)
+
+    @property
+    def state_text(self) -> str:  # type: ignore[override]
+        return (
+            f"position ({self.position_dim} numbers, user units), then phase "
+            f"({self.phase_dim} numbers, user units)"
+        )
+
+    @property
+    def velocity_text(self) -> str:  # type: ignore[override]
+        return (
+            f"velocity ({self.position_dim} numbers, user units per second), then phase rate "
+            f"({self.phase_dim} numbers)"
+        )
+
+    def errors(self, x: Tensor, y: Tensor) -> Tensor:
+        p = self.position_dim
+        return (x[..., :p] - y[..., :p]).norm(dim=-1, keepdim=True)
+
+    def tangent_scales(self, extent: float) -> np.ndarray:
+        return np.full(self.dim, extent)
+
+    def grid(
+        self, center: np.ndarray, half_width: float, count: int, rng: np.random.Generator
+    ) -> np.ndarray:
+        """Positions on the grid over their cube, each with a phase uniform in its cube."""
+        p = self.position_dim
+        positions = _grid(np.asarray(center[:p], dtype=np.float64), half_width, count)
+        phases = center[p:] + rng.uniform(-half_width, half_width, (len(positions), self.phase_dim))
+        return np.concatenate([positions, phases], axis=1)
 
 
 @dataclass(frozen=True)

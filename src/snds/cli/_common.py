@@ -19,6 +19,7 @@ from snds.data import (
 from snds.errors import ConfigError, SNDSError
 from snds.models import load_model
 from snds.obstacles import Scene, load_scene, parse_obstacle, parse_workspace
+from snds.phase import Phase
 from snds.plotting import plot_all, plot_obstacles
 from snds.policy import Policy, StablePolicy
 from snds.spaces import SE3, Euclidean
@@ -35,11 +36,13 @@ def _scene(args: argparse.Namespace):
     return Scene(obstacles=obstacles, workspace=workspace)
 
 
-def _data_source(args: argparse.Namespace, *, poses: bool = False, seed: int = 0) -> DataSource:
+def _data_source(
+    args: argparse.Namespace, *, poses: bool = False, seed: int = 0, phase: Phase | None = None
+) -> DataSource:
     """The demonstrations that ``--motion`` / ``--data``, ``--demos``, ``--max-end-spread``
     and ``--gaps`` name (the library's default gap mode where not given); with ``poses`` in
     SE(3) (synthetic orientations seeded by ``seed`` for position data; automatic for a pose
-    file)."""
+    file); with ``phase`` appended (:mod:`snds.phase`)."""
     spread = MAX_END_SPREAD if args.max_end_spread is None else args.max_end_spread
     return DataSource(
         motion=args.motion,
@@ -48,6 +51,7 @@ def _data_source(args: argparse.Namespace, *, poses: bool = False, seed: int = 0
         max_end_spread=spread,
         poses=poses,
         orientation_seed=seed,
+        phase=phase,
         **({"gaps": args.gaps} if args.gaps else {}),
     )
 
@@ -85,7 +89,8 @@ def _model_and_data(args: argparse.Namespace) -> tuple[Policy, dict, Demonstrati
     poses = isinstance(policy.space, SE3)
     if args.motion is not None or args.data is not None:
         seed = int(recorded.get("orientation_seed", 0))
-        source = _data_source(args, poses=poses, seed=seed)
+        phase = Phase.from_record(recorded["phase"]) if "phase" in recorded else None
+        source = _data_source(args, poses=poses, seed=seed, phase=phase)
     elif "motion" in recorded or "file" in recorded:
         source = DataSource.from_record(recorded, poses=poses)
     else:

@@ -22,6 +22,7 @@ from snds.cli._common import (
 )
 from snds.evaluate import evaluate
 from snds.method import make_policy
+from snds.phase import Phase
 from snds.policy import DEFAULT_WARP_LAYERS, Policy, PolicyConfig
 from snds.recipes import ARCHITECTURES, RECIPES, recipe_for
 from snds.runs import RunFolder
@@ -150,12 +151,21 @@ def register(commands: argparse._SubParsersAction) -> None:
         help="learn a pose policy (position + orientation); automatic for pose files (CSV "
         "with columns qx,qy,qz,qw, NPZ with 'quat'); position data get synthetic orientations",
     )
+    parser.add_argument(
+        "--phase-codes",
+        type=int,
+        metavar="M",
+        help="append a phase of M numbers to the state, a code per demonstration, so that "
+        "rollouts follow demonstrations that cross (arm recordings; see docs/data.md); "
+        "a start then needs a phase",
+    )
     parser.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
     check = _check_config(args)
-    source = _data_source(args, poses=args.se3, seed=args.seed)
+    phase = None if args.phase_codes is None else Phase(codes=args.phase_codes)
+    source = _data_source(args, poses=args.se3, seed=args.seed, phase=phase)
     demos = source.load()
     name = demos.name or source.name
     out = args.out or Path("runs") / (f"{name}-se3" if source.poses else name)

@@ -111,9 +111,14 @@ class DemonstrationSet:
             if not 0 <= i < len(self.demos):
                 raise DataError(f"demonstration index {i} out of range 0..{len(self.demos) - 1}")
 
+    @property
+    def position_dim(self) -> int:
+        """How many leading numbers of a state are its position, p."""
+        return self.demos[0].positions.shape[1]
+
     def positions(self) -> np.ndarray:
-        """All positions stacked, shape (sum T, p)."""
-        return np.concatenate([demo.positions for demo in self.demos])
+        """All positions stacked, shape (sum T, p) (a phase left out)."""
+        return np.concatenate([demo.positions[:, : self.position_dim] for demo in self.demos])
 
     def velocities(self) -> np.ndarray:
         """All velocities stacked, shape (sum T, m)."""
@@ -123,13 +128,13 @@ class DemonstrationSet:
         """Largest distance of a demonstrated position from the target position (the task's
         size)."""
         positions = self.positions()
-        return float(np.linalg.norm(positions - self.target[: positions.shape[1]], axis=-1).max())
+        return float(np.linalg.norm(positions - self.target[: self.position_dim], axis=-1).max())
 
     def max_speed(self) -> float:
         """Largest demonstrated speed of the positions, user units per second."""
         return float(
             max(
-                np.linalg.norm(demo.velocities[:, : demo.positions.shape[1]], axis=-1).max()
+                np.linalg.norm(demo.velocities[:, : self.position_dim], axis=-1).max()
                 for demo in self.demos
             )
         )
@@ -151,11 +156,15 @@ class Demonstrations(DemonstrationSet):
         demos: The demonstrated motions, each of dimension n.
         target: The common end point x*, shape (n,).
         name: A label for plots and reports.
+        phase_dim: How many trailing numbers of each state are a phase rather than a
+            position (0: none; see :mod:`snds.phase`). The extent and the top speed are the
+            positions' own.
     """
 
     demos: tuple[Demonstration, ...]
     target: np.ndarray
     name: str = ""
+    phase_dim: int = 0
 
     def __post_init__(self) -> None:
         demos = tuple(self.demos)
@@ -169,6 +178,10 @@ class Demonstrations(DemonstrationSet):
             raise DataError(
                 f"target has dimension {target.shape[0]}, demonstrations {demos[0].dim}"
             )
+        if type(self.phase_dim) is not int or not 0 <= self.phase_dim < demos[0].dim:
+            raise DataError(
+                f"phase_dim must be an integer in [0, {demos[0].dim}), got {self.phase_dim!r}"
+            )
         object.__setattr__(self, "demos", demos)
         object.__setattr__(self, "target", target)
 
@@ -177,11 +190,18 @@ class Demonstrations(DemonstrationSet):
         """State dimension n."""
         return self.demos[0].dim
 
+    @property
+    def position_dim(self) -> int:  # type: ignore[override]
+        """How many leading numbers of a state are its position: n less the phase."""
+        return self.dim - self.phase_dim
+
     def select(self, indices: list[int] | tuple[int, ...] | range) -> Demonstrations:
         """The demonstrations at ``indices``, in that order, with the same target."""
         indices = list(indices)
         self._check_indices(indices)
-        return Demonstrations(tuple(self.demos[i] for i in indices), self.target, self.name)
+        return Demonstrations(
+            tuple(self.demos[i] for i in indices), self.target, self.name, self.phase_dim
+        )
 
 
 @dataclass(frozen=True)

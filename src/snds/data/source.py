@@ -12,6 +12,7 @@ with synthetic orientations (:func:`~snds.data.poses.with_synthetic_orientations
     DataSource(motion="Sine", demos=3).load()                     # 3 LASA Sine demonstrations
     DataSource(file=Path("arm.mat"), demos=(0, 2)).load()         # demonstrations 0 and 2
     DataSource(file=Path("Messy_snake.mat"), demos=1, poses=True).load()  # lifted to SE(3)
+    DataSource(file=Path("3D_sink.mat"), phase=Phase(codes=3)).load()  # with a phase (snds.phase)
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ from snds.data.poses import (
 )
 from snds.data.targets import MAX_END_SPREAD
 from snds.errors import DataError
+from snds.phase import Phase
 
 __all__ = ["DataSource"]
 
@@ -54,6 +56,8 @@ class DataSource:
         poses: Whether the task is in SE(3). Automatic for a pose file; position data are
             then lifted with synthetic orientations.
         orientation_seed: Seed of the synthetic orientations.
+        phase: A phase appended to the positions (:class:`~snds.phase.Phase`); None: none.
+            Position tasks only.
     """
 
     motion: str | None = None
@@ -63,6 +67,7 @@ class DataSource:
     gaps: str = DEFAULT_GAPS
     poses: bool = False
     orientation_seed: int = 0
+    phase: Phase | None = None
 
     def __post_init__(self) -> None:
         if (self.motion is None) == (self.file is None):
@@ -72,6 +77,8 @@ class DataSource:
             if is_pose_file(self.file):
                 object.__setattr__(self, "poses", True)
         check_gap_mode(self.gaps)
+        if self.phase is not None and self.poses:
+            raise DataError("a phase is for position tasks; a pose task cannot take one")
         if isinstance(self.demos, list):
             object.__setattr__(self, "demos", tuple(self.demos))
         if isinstance(self.demos, int) and self.demos < 1:
@@ -92,7 +99,7 @@ class DataSource:
             return load_poses(self.file, select=self._indices(), max_end_spread=self.max_end_spread)
         positions = self._positions()
         if not self.poses:
-            return positions
+            return positions if self.phase is None else self.phase.apply(positions)
         return with_synthetic_orientations(positions, seed=self.orientation_seed)
 
     def record(self) -> dict:
@@ -107,6 +114,8 @@ class DataSource:
                 "max_end_spread": self.max_end_spread,
                 "gaps": self.gaps,
             }
+        if self.phase is not None:
+            record["phase"] = self.phase.record()
         return record | ({"orientation_seed": self.orientation_seed} if self.poses else {})
 
     @classmethod
@@ -127,6 +136,7 @@ class DataSource:
             gaps=str(record.get("gaps", GAPS_BEFORE_RECORDED)),
             poses=poses,
             orientation_seed=int(record.get("orientation_seed", 0)),
+            phase=Phase.from_record(record["phase"]) if "phase" in record else None,
         )
 
     def _indices(self) -> list[int] | None:

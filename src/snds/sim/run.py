@@ -14,6 +14,8 @@ once from the policy's type (:func:`make_commander`):
   world by a :class:`Placement`; the policy drives the position, the controller holds the
   orientation at the start's (and a 2-D task on its plane). It has arrived within
   :attr:`SimConfig.tolerance` of the target.
+- :class:`PhasedCommander`, a position policy with a phase (:mod:`snds.phase`): as a
+  position policy's, and it keeps the phase, which waits while the arm is held.
 - :class:`PoseCommander`, an SE(3) :class:`~snds.se3.PosePolicy`: positions are placed as a
   3-D task's, orientations by one fixed rotation (:class:`PosePlacement`) that takes the
   task's target orientation to the arm's orientation at its rest pose, which the arm can
@@ -32,12 +34,13 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from snds.obstacles import Scene, avoid_step, modulate_twist, step_fraction
+from snds.phase import phase_step
 from snds.policy import Policy, float64_copy
 from snds.rollout import policy_guard, safe_velocity
 from snds.se3 import PosePolicy
 from snds.sim.arm import Arm, EndEffector, joint_velocity, orientation_error
 from snds.sim.robots import Robot, SimulationError, get_robot
-from snds.spaces import SE3, Euclidean, Space
+from snds.spaces import SE3, Euclidean, Phased, Space
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -299,7 +302,11 @@ class PositionCommander:
         control period decreases V enough (:func:`snds.rollout.safe_velocity`), as for pose
         policies.
         """
-        state = torch.as_tensor(self.placement.to_task(pose.position))[None]
+        return self._world_twist(pose, self._velocity(self.placement.to_task(pose.position)))
+
+    def _velocity(self, state: np.ndarray) -> np.ndarray:
+        """The guarded (and, with obstacles, modulated) velocity at a task state (user units)."""
+        state = torch.as_tensor(state)[None]
         scene = self.config.obstacles
         with torch.no_grad():
             if scene is not None:
@@ -310,7 +317,10 @@ class PositionCommander:
                 velocity = velocity * (h / dt).unsqueeze(-1)
             else:
                 velocity = safe_velocity(self.policy, state, 1.0 / self.config.control_rate)[0]
-            velocity = velocity[0].numpy()
+        return velocity[0].numpy()
+
+    def _world_twist(self, pose: EndEffector, velocity: np.ndarray) -> np.ndarray:
+        """The world twist of a task velocity of the positions, the holds added."""
         gain = self.config.hold_gain
         return np.concatenate(
             [
@@ -323,6 +333,68 @@ class PositionCommander:
     def arrived(self, distance: float, angle: float) -> bool:
         """Within the position tolerance: the held orientation is not the policy's to reach."""
         return distance <= self.config.tolerance
+
+
+class PhasedCommander(PositionCommander):
+    """A position policy with a phase in its state (:class:`~snds.spaces.Phased`): it drives
+    the position, and the commander keeps the phase, advancing it by the share of each
+    commanded step that the arm made (:func:`snds.phase.phase_step`), so that a held arm's
+    phase waits for it. A start is a whole state, phase included (``start_pose``).
+
+    Arguments:
+        policy: The phased policy (float64).
+        placement: Where the task's positions lie.
+        hold: The orientation held, quaternion (4,).
+        config: The run's settings; obstacles are refused (their modulation of a phased
+            field is not defined).
+    """
+
+    def __init__(
+        self, policy: Policy, placement: Placement, hold: np.ndarray, config: SimConfig
+    ) -> None:
+        if config.obstacles is not None:
+            raise SimulationError("obstacles cannot be simulated with a model that has a phase")
+        super().__init__(policy, placement, hold, config)
+        self.position_dim = policy.space.position_dim
+        self.state: np.ndarray | None = None
+        self.commanded: np.ndarray | None = None
+
+    @classmethod
+    def build(
+        cls, policy: Policy, robot: Robot, rest_orientation: np.ndarray, config: SimConfig
+    ) -> PhasedCommander:
+        """The commander of a run on ``robot``, holding the rest orientation."""
+        scale = config.scale if config.scale is not None else default_scale(robot, policy)
+        target = policy.space.positions(policy.target)
+        return cls(policy, Placement.for_task(robot, target, scale), rest_orientation, config)
+
+    def start_pose(self, start: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The world pose of a start state (n + m,): its position, the held orientation; its
+        phase starts the commander's."""
+        start = np.asarray(start, dtype=float)
+        if start.shape != self.policy.target.shape:
+            raise SimulationError(
+                f"the start has shape {start.shape}, the model's states (position and phase) "
+                f"{self.policy.target.shape}"
+            )
+        self.state, self.commanded = start.copy(), None
+        return self.placement.to_world(start[: self.position_dim]), self.goal_orientation
+
+    def twist(self, pose: EndEffector) -> np.ndarray:
+        """The policy's velocity at the measured position and the kept phase."""
+        if self.state is None:
+            raise SimulationError("a phased run needs its start (start_pose) before a twist")
+        measured = self.placement.to_task(pose.position)
+        if self.commanded is None:
+            state = np.concatenate([measured, self.state[self.position_dim :]])
+        else:
+            dt = 1.0 / self.config.control_rate
+            state = phase_step(
+                self.state, self.commanded, dt, measured, position_dim=self.position_dim
+            )
+        velocity = self._velocity(state)
+        self.state, self.commanded = state, velocity
+        return self._world_twist(pose, velocity[: self.position_dim])
 
 
 class PoseCommander:
@@ -401,7 +473,11 @@ class PoseCommander:
 
 #: The commander of each state space: a position policy drives the position and holds the
 #: orientation; a pose policy drives both.
-COMMANDERS: dict[type[Space], Any] = {Euclidean: PositionCommander, SE3: PoseCommander}
+COMMANDERS: dict[type[Space], Any] = {
+    Euclidean: PositionCommander,
+    Phased: PhasedCommander,
+    SE3: PoseCommander,
+}
 
 
 def make_commander(

@@ -1,0 +1,159 @@
+r"""A phase in the state: which demonstration a rollout follows, and how far along it is.
+
+A field of position alone, :math:`\dot x = \pi(x)`, has one velocity per place, so it cannot
+follow two demonstrations that cross, or one that passes the same place twice. :class:`Phase`
+appends to demonstration :math:`d`'s positions the phase
+
+.. math:: \psi_d(t) = E \left(1 - \frac{t - t_0}{T_d}\right) c_d \in \mathbb{R}^m,
+
+with :math:`E` the positions' extent, :math:`T_d` the demonstration's duration and
+:math:`c_d` a unit code of :math:`m` numbers drawn for it. In the state :math:`(x, \psi)` the
+demonstrations are apart wherever their phases are not 0, and every one ends at
+:math:`(x^*, 0)`. SNDS is trained on these states unchanged, so its guarantee holds for the
+joint state: every rollout reaches :math:`(x^*, 0)` (the model's space is
+:class:`~snds.spaces.Phased`, whose metrics and plots read the positions).
+
+What a user gives up: a start needs a phase. :func:`start_state` takes the phase of the
+demonstration whose start is nearest. And a robot that is held should not let its phase run
+on (the phase stopping of dynamic movement primitives): :func:`phase_step` advances the phase
+by the share of the commanded displacement that the measured positions made, so that on an
+unhindered robot it is the policy's own step and on a held one the phase waits.
+
+    demos = Phase(codes=3).apply(snds.load_lasa("Sine"))   # states (x1, x2, psi1..psi3)
+    start = start_state(demos, np.array([-40.0, 10.0]))      # (5,)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from snds.data.demonstrations import Demonstration, Demonstrations
+from snds.errors import ConfigError, DataError
+
+__all__ = ["Phase", "phase_step", "start_state"]
+
+
+@dataclass(frozen=True, kw_only=True)
+class Phase:
+    """How the phase is appended to a task's states.
+
+    Attributes:
+        codes: Numbers m of the phase. With 1 the phase is a scalar clock shared by all
+            demonstrations; with more, each demonstration gets its own random unit direction.
+        seed: Seed of the codes.
+    """
+
+    codes: int = 3
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        # bool is an int to Python: only a true integer counts codes.
+        if type(self.codes) is not int or not 1 <= self.codes <= 64:
+            raise ConfigError(f"phase codes must be an integer in 1..64, got {self.codes!r}")
+        if type(self.seed) is not int:
+            raise ConfigError(f"the phase seed must be an integer, got {self.seed!r}")
+
+    def codebook(self, count: int) -> np.ndarray:
+        """The unit codes c_d of ``count`` demonstrations, shape (count, codes), in order; the
+        same for the same seed (a demonstration's code does not depend on how many follow)."""
+        if self.codes == 1:
+            return np.ones((count, 1))
+        rng = np.random.default_rng(self.seed)
+        codes = rng.normal(size=(count, self.codes))
+        return codes / np.linalg.norm(codes, axis=1, keepdims=True)
+
+    def apply(self, demos: Demonstrations) -> Demonstrations:
+        """The demonstrations with their phases appended: states (T, n + codes), velocities
+        their time derivatives, the target (x*, 0), ``phase_dim`` = codes.
+
+        Raises:
+            DataError: If the demonstrations carry a phase already.
+        """
+        if demos.phase_dim:
+            raise DataError(f"{demos.name or 'the demonstrations'} carry a phase already")
+        extent = demos.extent()
+        out = []
+        for demo, code in zip(demos, self.codebook(len(demos)), strict=True):
+            remaining = 1.0 - (demo.times - demo.times[0]) / demo.duration
+            phase = extent * remaining[:, None] * code
+            rate = np.broadcast_to(-extent / demo.duration * code, phase.shape)
+            out.append(
+                Demonstration(
+                    np.column_stack([demo.positions, phase]),
+                    np.column_stack([demo.velocities, rate]),
+                    demo.times,
+                )
+            )
+        target = np.append(demos.target, np.zeros(self.codes))
+        return Demonstrations(tuple(out), target, demos.name, self.codes)
+
+    def record(self) -> dict:
+        """The JSON-ready description saved with a model (``model.json``'s ``data.phase``)."""
+        return {"codes": self.codes, "seed": self.seed}
+
+    @classmethod
+    def from_record(cls, record: dict) -> Phase:
+        """The phase a :meth:`record` describes."""
+        if not isinstance(record, dict) or "codes" not in record:
+            raise DataError(f"a phase record needs its codes, got {record!r}")
+        return cls(codes=record["codes"], seed=record.get("seed", 0))
+
+
+def start_state(demos: Demonstrations, position: np.ndarray) -> np.ndarray:
+    """A phased start at a position: the start phase of the demonstration whose start
+    position is nearest (so the rollout follows that demonstration from where it is).
+
+    Arguments:
+        demos: The phased demonstrations of the task.
+        position: The start position, shape (n,).
+
+    Returns:
+        The start state, shape (n + m,).
+    """
+    p = demos.position_dim
+    position = np.asarray(position, dtype=np.float64)
+    if position.shape != (p,):
+        raise DataError(f"a start position has shape ({p},), got {position.shape}")
+    starts = np.stack([demo.states[0] for demo in demos])
+    nearest = int(np.argmin(np.linalg.norm(starts[:, :p] - position, axis=1)))
+    return np.concatenate([position, starts[nearest, p:]])
+
+
+def phase_step(
+    state: np.ndarray,
+    velocity: np.ndarray,
+    h: float,
+    measured: np.ndarray,
+    *,
+    position_dim: int,
+) -> np.ndarray:
+    r"""The state after a commanded step, from the positions measured after it.
+
+    The positions are the measured ones; the phase advances by the policy's phase velocity
+    times :math:`h\,s`, with :math:`s = \mathrm{clip}(\langle \Delta x, h v_x \rangle /
+    \|h v_x\|^2, 0, 1)` the share of the commanded displacement :math:`h v_x` that the
+    measured one :math:`\Delta x` made. Unhindered (:math:`\Delta x = h v_x`) this is the
+    policy's own Euler step, so the guarantee applies; held (:math:`\Delta x = 0`) the phase
+    waits; where no displacement was commanded it runs on.
+
+    Arguments:
+        state: The states the step was commanded at, shape (*, n + m).
+        velocity: The velocities commanded there, shape (*, n + m).
+        h: The step, seconds.
+        measured: The positions measured after it, shape (*, n).
+        position_dim: n.
+
+    Returns:
+        The next states, shape (*, n + m).
+    """
+    p = position_dim
+    state = np.asarray(state, dtype=np.float64)
+    commanded = h * np.asarray(velocity, dtype=np.float64)
+    measured = np.asarray(measured, dtype=np.float64)
+    made = measured - state[..., :p]
+    size = np.einsum("...i,...i->...", commanded[..., :p], commanded[..., :p])
+    ratio = np.einsum("...i,...i->...", made, commanded[..., :p]) / np.where(size > 0, size, 1.0)
+    share = np.where(size > 0, np.clip(ratio, 0.0, 1.0), 1.0)
+    return np.concatenate([measured, state[..., p:] + share[..., None] * commanded[..., p:]], -1)
