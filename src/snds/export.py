@@ -496,13 +496,14 @@ class Signature:
 
     def output_scale(self) -> np.ndarray:
         """Divisors (outputs,) of the outputs before they are compared with the top speed."""
-        return np.repeat(self.policy.chart_scales(), self.space.velocity_sizes)
+        blocks = self.policy.chart_scales()[list(self.space.velocity_units)]
+        return np.repeat(blocks, self.space.velocity_sizes)
 
     def metadata(self) -> dict[str, str]:
         """The ONNX file's metadata: what goes in and out, the target, the extents and top
         speeds of each component."""
         space, policy = self.space, self.policy
-        speeds = _top_speed(policy) * policy.chart_scales()
+        speeds = _top_speed(policy) * policy.chart_scales()[list(space.velocity_units)]
         return {
             "snds.dim": str(space.tangent_dim),
             "snds.input": space.state_text,
@@ -522,7 +523,11 @@ class Signature:
 #: The metadata key of each error component's extent (:attr:`~snds.spaces.Space.error_names`).
 _EXTENT_KEYS = {"distance": "snds.extent", "angle": "snds.angle_extent"}
 #: The metadata key of each velocity block's top speed.
-_SPEED_KEYS = {"velocity": "snds.top_speed", "angular_velocity": "snds.top_angular_speed"}
+_SPEED_KEYS = {
+    "velocity": "snds.top_speed",
+    "angular_velocity": "snds.top_angular_speed",
+    "phase_rate": "snds.top_phase_rate",
+}
 
 
 def signature(policy: Policy) -> Signature:

@@ -48,6 +48,8 @@ class Space(ABC):
         velocity_names: Names of the blocks of a velocity row, the first the positions' own
             velocity ("velocity"; a twist adds "angular_velocity").
         velocity_sizes: Their sizes, summing to :attr:`tangent_dim`.
+        velocity_units: For each block, the error component (an index into
+            :attr:`error_names`) whose unit it moves in per second.
         state_text: What a state row holds, in words (exported models' metadata).
         velocity_text: What a velocity row holds, in words.
     """
@@ -58,6 +60,7 @@ class Space(ABC):
     error_names: tuple[str, ...]
     velocity_names: tuple[str, ...]
     velocity_sizes: tuple[int, ...]
+    velocity_units: tuple[int, ...]
     state_text: str
     velocity_text: str
 
@@ -124,6 +127,7 @@ class Euclidean(Space):
     dim: int
     error_names: ClassVar[tuple[str, ...]] = ("distance",)
     velocity_names: ClassVar[tuple[str, ...]] = ("velocity",)
+    velocity_units: ClassVar[tuple[int, ...]] = (0,)
 
     @property
     def velocity_sizes(self) -> tuple[int, ...]:  # type: ignore[override]
@@ -185,6 +189,7 @@ class Phased(Euclidean):
     dim: int
     phase_dim: int
     velocity_names: ClassVar[tuple[str, ...]] = ("velocity", "phase_rate")
+    velocity_units: ClassVar[tuple[int, ...]] = (0, 0)
 
     @property
     def position_dim(self) -> int:  # type: ignore[override]
@@ -241,6 +246,7 @@ class SE3(Space):
     error_names: ClassVar[tuple[str, ...]] = ("distance", "angle")
     velocity_names: ClassVar[tuple[str, ...]] = ("velocity", "angular_velocity")
     velocity_sizes: ClassVar[tuple[int, ...]] = (3, 3)
+    velocity_units: ClassVar[tuple[int, ...]] = (0, 1)
     state_text: ClassVar[str] = "pose (x, y, z in user units; qx, qy, qz, qw, a unit quaternion)"
     velocity_text: ClassVar[str] = (
         "twist (vx, vy, vz in user units per second; wx, wy, wz in rad/s, world frame)"

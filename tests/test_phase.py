@@ -1,0 +1,207 @@
+"""A phase in the state (snds.phase): the appended phase, its space, the guarantee in the joint
+state, the phase that waits for a held arm, the record, the CLI and the simulated arm."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+import snds
+from snds.cli import main
+from snds.data import DataSource, no_split
+from snds.errors import ConfigError, DataError
+from snds.evaluate import evaluate
+from snds.models import load_model, save_model
+from snds.phase import Phase, phase_step, start_state
+from snds.rollout import rollout_numpy
+from snds.spaces import Phased
+from snds.stability import CheckConfig
+
+from conftest import SMALL
+
+
+@pytest.fixture(scope="module")
+def phased(spiral):
+    return Phase(codes=3, seed=4).apply(spiral)
+
+
+def test_the_phase_runs_from_the_extent_along_the_code_to_zero(spiral, phased):
+    extent = spiral.extent()
+    codes = Phase(codes=3, seed=4).codebook(len(spiral))
+    assert phased.dim == 5 and phased.position_dim == 2 and phased.phase_dim == 3
+    np.testing.assert_array_equal(phased.target, np.zeros(5))
+    for demo, plain, code in zip(phased, spiral, codes, strict=True):
+        np.testing.assert_array_equal(demo.positions[:, :2], plain.positions)
+        np.testing.assert_allclose(demo.positions[0, 2:], extent * code, rtol=1e-12)
+        np.testing.assert_allclose(demo.positions[-1, 2:], 0.0, atol=1e-12)
+        # The phase velocity is the phase's time derivative (it is linear in time).
+        slope = np.diff(demo.positions[:, 2:], axis=0) / np.diff(demo.times)[:, None]
+        np.testing.assert_allclose(slope, demo.velocities[1:, 2:], rtol=1e-9)
+    np.testing.assert_allclose(np.linalg.norm(codes, axis=1), 1.0)
+    # The extent, top speed and positions are the positions' own: the phase adds no scale.
+    assert phased.extent() == spiral.extent() and phased.max_speed() == spiral.max_speed()
+    assert phased.positions().shape == spiral.positions().shape
+    assert phased.select([1]).phase_dim == 3
+
+
+def test_codes_are_seeded_and_one_code_is_a_shared_clock():
+    a, b = Phase(codes=4, seed=1).codebook(5), Phase(codes=4, seed=1).codebook(5)
+    np.testing.assert_array_equal(a, b)
+    assert not np.allclose(a, Phase(codes=4, seed=2).codebook(5))
+    np.testing.assert_array_equal(a[:3], Phase(codes=4, seed=1).codebook(3))
+    np.testing.assert_array_equal(Phase(codes=1).codebook(3), np.ones((3, 1)))
+
+
+@pytest.mark.parametrize("codes", [0, 65, 2.0, True])
+def test_bad_codes_are_refused(codes):
+    with pytest.raises(ConfigError, match="codes"):
+        Phase(codes=codes)
+
+
+def test_a_phase_is_not_appended_twice_nor_to_poses(phased):
+    with pytest.raises(DataError, match="phase already"):
+        Phase().apply(phased)
+    with pytest.raises(DataError, match="pose"):
+        DataSource(motion="Sine", poses=True, phase=Phase())
+
+
+def test_start_state_takes_the_nearest_demonstrations_phase(phased):
+    near = phased[1].positions[0, :2] + 0.01
+    state = start_state(phased, near)
+    np.testing.assert_array_equal(state[:2], near)
+    np.testing.assert_array_equal(state[2:], phased[1].positions[0, 2:])
+    with pytest.raises(DataError, match="shape"):
+        start_state(phased, np.zeros(3))
+
+
+def test_the_space_compares_positions_only():
+    space = Phased(5, 3)
+    assert space.position_dim == 2 and space.velocity_sizes == (2, 3)
+    x = torch.tensor([[3.0, 4.0, 9.0, 9.0, 9.0]])
+    assert space.errors(x, torch.zeros(5)).item() == pytest.approx(5.0)
+    rng = np.random.default_rng(0)
+    states = space.uniform(np.zeros(5), 2.0, 100, rng)
+    assert states.shape == (100, 5) and np.abs(states).max() <= 2.0
+    grid = space.grid(np.zeros(5), 1.0, 9, rng)
+    assert grid.shape == (9, 5) and {tuple(r) for r in grid[:, :2]} >= {(-1.0, -1.0), (1.0, 1.0)}
+
+
+def test_phase_step_is_euler_unhindered_and_waits_when_held():
+    state, velocity, h = np.array([1.0, 2.0, 3.0, -1.0]), np.array([2.0, 0.0, -4.0, 1.0]), 0.1
+    euler = state + h * velocity
+    np.testing.assert_allclose(phase_step(state, velocity, h, euler[:2], position_dim=2), euler)
+    held = phase_step(state, velocity, h, state[:2], position_dim=2)
+    np.testing.assert_array_equal(held, state)
+    # Half the commanded displacement: half the phase step; backwards: none.
+    half = phase_step(state, velocity, h, state[:2] + [0.1, 0.0], position_dim=2)
+    np.testing.assert_allclose(half[2:], state[2:] + 0.5 * h * velocity[2:])
+    back = phase_step(state, velocity, h, state[:2] - [0.1, 0.0], position_dim=2)
+    np.testing.assert_array_equal(back[2:], state[2:])
+    # Nothing commanded for the positions: the phase runs on.
+    still = np.array([0.0, 0.0, -4.0, 1.0])
+    ran = phase_step(state, still, h, state[:2], position_dim=2)
+    np.testing.assert_allclose(ran, state + h * still)
+
+
+def test_the_guarantee_holds_in_the_joint_state(phased):
+    # GIVEN an untrained phased policy with scrambled weights, float64
+    policy = snds.make_policy(phased, config=SMALL, seed=2).double()
+    assert isinstance(policy.space, Phased) and policy.config.phase_dim == 3
+    with torch.no_grad():
+        for p in policy.parameters():
+            p.add_(0.5 * torch.randn_like(p))
+    # WHEN evaluated at random and far joint states
+    x = torch.cat([torch.randn(5000, 5), 1e3 * torch.randn(5000, 5)]).double()
+    v, grad_v = policy.lyapunov.value_and_grad(x)
+    pi = policy.field(x)
+    # THEN V > 0 away from the target, V(0) = 0 and V decreases at the promised rate
+    slack = 1e-9 * (grad_v.norm(dim=-1) * policy.nominal(x).norm(dim=-1) + v)
+    assert ((grad_v * pi).sum(-1) <= -policy.decay(v, x) + slack).all() and (v > 0).all()
+    assert policy.lyapunov.value_and_grad(torch.zeros(1, 5).double())[0].item() == 0.0
+
+
+@pytest.fixture(scope="module")
+def trained(phased):
+    policy = snds.make_policy(phased, config=SMALL, seed=0)
+    snds.fit(policy, phased, no_split(phased), snds.TrainConfig(steps=300, seed=0))
+    return policy
+
+
+def test_a_trained_phased_policy_converges_and_is_measured_on_positions(trained, phased):
+    check = CheckConfig(rollouts=100, samples=5000, seed=0)
+    metrics = evaluate(trained.double(), phased, no_split(phased), check=check)
+    assert metrics["stability"]["converged_fraction"] == 1.0
+    assert metrics["stability"]["decrease_violations"] == 0
+    assert np.isfinite(metrics["dtw"]) and "phase_rate_mse" in metrics
+    # Rollouts from the starts end at the target, the phase at 0 with them.
+    starts = np.stack([d.states[0] for d in phased])
+    ends = rollout_numpy(trained, starts, dt=0.05, steps=2000)[:, -1]
+    np.testing.assert_allclose(ends, 0.0, atol=0.05 * phased.extent())
+
+
+def test_save_and_load_keep_the_phase(trained, phased, tmp_path):
+    source = DataSource(motion="Sine", demos=2, phase=Phase(codes=2, seed=3))
+    save_model(trained, tmp_path, extra={"data": source.record()})
+    loaded, description = load_model(tmp_path)
+    assert loaded.space == trained.space == Phased(5, 3)
+    x = torch.randn(50, 5, dtype=trained.center.dtype)
+    torch.testing.assert_close(loaded(x), trained(x))
+    again = DataSource.from_record(json.loads(json.dumps(description["data"])))
+    assert again.phase == source.phase and again.load().phase_dim == 2
+
+
+def test_cli_train_evaluate_plot_export_with_a_phase(tmp_path, capsys):
+    out = tmp_path / "sine"
+    fast = ["--steps", "150", "--rollouts", "50", "--samples", "2000"]
+    argv = ["--quiet", "train", "--motion", "Sine", "--demos", "2", "--phase-codes", "2"]
+    assert main([*argv, "--out", str(out), *fast]) == 0
+    record = json.loads((out / "model.json").read_text())
+    assert record["data"]["phase"] == {"codes": 2, "seed": 0}
+    assert record["policy"]["phase_dim"] == 2 and record["dim"] == 4
+    assert main(["--quiet", "evaluate", str(out), "--rollouts", "50", "--samples", "2000"]) == 0
+    assert main(["--quiet", "plot", str(out), "--out", str(tmp_path / "plots")]) == 0
+    assert (tmp_path / "plots" / "rollout_lyapunov.png").is_file()
+    pytest.importorskip("onnxruntime", reason="the export needs the export extra")
+    assert main(["--quiet", "export", str(out), "--out", str(tmp_path / "m.onnx")]) == 0
+    assert (tmp_path / "m.onnx").is_file()
+
+
+@pytest.mark.parametrize("codes", ["0", "x"])
+def test_cli_bad_phase_codes_exit_2(codes, tmp_path, capsys):
+    argv = ["--quiet", "train", "--motion", "Sine", "--phase-codes", codes]
+    try:
+        code = main([*argv, "--out", str(tmp_path / "m")])
+    except SystemExit as exit_:
+        code = exit_.code
+    assert code == 2 and "Traceback" not in capsys.readouterr().err
+    assert not (tmp_path / "m").exists()
+
+
+def test_the_simulated_arm_keeps_the_phase_and_it_waits_while_held(trained, phased):
+    from snds.sim.arm import EndEffector
+    from snds.sim.robots import get_robot
+    from snds.sim.run import PhasedCommander, SimConfig, make_commander
+
+    model = trained.double().eval()
+    rest = np.array([0.0, 0.0, 0.0, 1.0])
+    commander = make_commander(model, get_robot("iiwa"), rest, SimConfig(robot="iiwa"))
+    assert isinstance(commander, PhasedCommander)
+    start = phased[0].states[0]
+    position, _ = commander.start_pose(start)
+    commander.twist(EndEffector(position, rest))
+    first = commander.state.copy()
+    np.testing.assert_allclose(first, start, atol=1e-9)
+    # Held: the same measured position again, the phase does not move.
+    commander.twist(EndEffector(position, rest))
+    np.testing.assert_allclose(commander.state[2:], first[2:], atol=1e-12)
+    # Moved as commanded: the phase moves by its own commanded step.
+    velocity = commander.commanded
+    dt = 1.0 / commander.config.control_rate
+    moved = commander.placement.to_world(first[:2] + dt * velocity[:2])
+    commander.twist(EndEffector(moved, rest))
+    np.testing.assert_allclose(commander.state[2:], first[2:] + dt * velocity[2:], rtol=1e-6)
+    with pytest.raises(snds.errors.SNDSError, match="shape"):
+        commander.start_pose(start[:2])
