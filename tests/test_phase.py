@@ -164,6 +164,11 @@ def test_cli_train_evaluate_plot_export_with_a_phase(tmp_path, capsys):
     assert main(["--quiet", "evaluate", str(out), "--rollouts", "50", "--samples", "2000"]) == 0
     assert main(["--quiet", "plot", str(out), "--out", str(tmp_path / "plots")]) == 0
     assert (tmp_path / "plots" / "rollout_lyapunov.png").is_file()
+    # Obstacles are refused with one line, for every command that takes them.
+    sphere = ["--obstacle", "sphere:-20,0,3"]
+    assert main(["--quiet", "evaluate", str(out), *sphere]) == 2
+    assert main(["--quiet", "export", str(out), *sphere, "--out", str(tmp_path / "o.onnx")]) == 2
+    assert "phase" in capsys.readouterr().err and not (tmp_path / "o.onnx").exists()
     pytest.importorskip("onnxruntime", reason="the export needs the export extra")
     assert main(["--quiet", "export", str(out), "--out", str(tmp_path / "m.onnx")]) == 0
     assert (tmp_path / "m.onnx").is_file()

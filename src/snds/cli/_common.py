@@ -22,7 +22,7 @@ from snds.obstacles import Scene, load_scene, parse_obstacle, parse_workspace
 from snds.phase import Phase
 from snds.plotting import plot_all, plot_obstacles
 from snds.policy import Policy, StablePolicy
-from snds.spaces import SE3, Euclidean
+from snds.spaces import SE3
 from snds.stability import CheckConfig
 
 
@@ -105,9 +105,14 @@ def _model_and_data(args: argparse.Namespace) -> tuple[Policy, dict, Demonstrati
 
 
 def _refuse_obstacles(policy: Policy, command: str) -> None:
-    """Obstacles are for position models here (``snds simulate`` takes both)."""
-    if not isinstance(policy.space, Euclidean):
-        raise ConfigError(f"obstacles: snds {command} takes position models (simulate: both)")
+    """Obstacles are for position models without a phase here (``snds simulate`` takes
+    poses too)."""
+    space = policy.space
+    if space.dim != space.position_dim:
+        raise ConfigError(
+            f"obstacles: snds {command} takes position models without a phase "
+            "(simulate: poses too)"
+        )
 
 
 def _write_plots(

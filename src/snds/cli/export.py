@@ -14,7 +14,7 @@ from snds.io import to_jsonable, write_json
 from snds.models import load_model
 from snds.obstacles import ModulatedPolicy
 from snds.policy import Policy
-from snds.spaces import Euclidean
+from snds.spaces import SE3
 
 __all__ = ["register", "run"]
 
@@ -79,11 +79,13 @@ def _with_obstacles(policy: Policy, scene) -> Policy:
     """The policy of ``snds export --obstacle``: the modulation in the graph (fixed obstacles,
     position models), or a one-line refusal of what the graph cannot hold."""
 
-    if not isinstance(policy.space, Euclidean):
+    if isinstance(policy.space, SE3):
         raise ConfigError(
             "obstacles cannot be exported with a pose model (its graph maps poses to twists); "
             "modulate the linear part in the controller (snds.obstacles.modulate_twist)"
         )
+    if policy.space.dim != policy.space.position_dim:
+        raise ConfigError("obstacles cannot be exported with a model that has a phase")
     if scene.moving:
         raise ConfigError(
             "moving obstacles (velocity=) cannot be exported: the graph has no time input"
