@@ -15,10 +15,11 @@ from snds.data.poses import load_poses
 from snds.errors import DataError, ModelFileError, SNDSError
 from snds.method import make_policy
 from snds.models import load_model, save_model
+from snds.phase import Phase
 from snds.policy import PolicyConfig, StablePolicy, project
 from snds.recipes import RECIPES, Recipe
 from snds.se3 import PosePolicy
-from snds.spaces import SE3, Euclidean
+from snds.spaces import SE3, Euclidean, Phased
 from snds.stability import CheckConfig, check_stability
 from snds.train import TrainConfig, TrainingError, fit
 
@@ -28,6 +29,8 @@ __all__ = [
     "DataError",
     "Euclidean",
     "ModelFileError",
+    "Phase",
+    "Phased",
     "PolicyConfig",
     "PosePolicy",
     "RECIPES",
