@@ -11,7 +11,7 @@ import torch
 
 import snds
 from snds.cli import main
-from snds.data import DataSource, no_split
+from snds.data import DataSource, Normalization, no_split
 from snds.errors import ConfigError, DataError
 from snds.evaluate import evaluate
 from snds.models import load_model, save_model
@@ -45,6 +45,22 @@ def test_the_phase_runs_from_the_extent_along_the_code_to_zero(spiral, phased):
     assert phased.extent() == spiral.extent() and phased.max_speed() == spiral.max_speed()
     assert phased.positions().shape == spiral.positions().shape
     assert phased.select([1]).phase_dim == 3
+
+
+def test_the_model_scales_the_whole_state_and_keeps_the_positions_extent(spiral, phased):
+    # The phase is scaled with the positions (one length for the state the network sees),
+    # while tolerances and scale-free figures stay fractions of the positions' extent.
+    norm = Normalization.fit(phased)
+    states = np.concatenate([d.states for d in phased])
+    assert norm.length == pytest.approx(np.linalg.norm(states, axis=1).max())
+    assert norm.extent == spiral.extent() < norm.length
+    assert Normalization.from_dict(norm.to_dict()).to_dict() == norm.to_dict()
+    old = {k: v for k, v in norm.to_dict().items() if k != "extent"}
+    assert Normalization.from_dict(old).extent == norm.length  # a record before the phase
+    policy = snds.make_policy(phased, config=SMALL)
+    assert policy.extents()[0] == spiral.extent()
+    plain = Normalization.fit(spiral)
+    assert plain.length == plain.extent == spiral.extent()
 
 
 def test_codes_are_seeded_and_one_code_is_a_shared_clock():

@@ -344,7 +344,7 @@ class Policy(nn.Module, ABC):
     def extents(self) -> np.ndarray:
         """The demonstrations' extent in each error component of :attr:`space`
         (:meth:`~snds.spaces.Space.errors`), user units, shape (k,): the positions' first."""
-        return np.array([self.length])
+        return np.array([self.normalization.extent])
 
     def chart_scales(self) -> np.ndarray:
         """User units per unit of the chart that :attr:`normalization` maps, one per error

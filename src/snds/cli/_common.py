@@ -110,8 +110,7 @@ def _refuse_obstacles(policy: Policy, command: str) -> None:
     space = policy.space
     if space.dim != space.position_dim:
         raise ConfigError(
-            f"obstacles: snds {command} takes position models without a phase "
-            "(simulate: poses too)"
+            f"obstacles: snds {command} takes position models without a phase (simulate: poses too)"
         )
 
 

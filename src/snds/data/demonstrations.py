@@ -195,6 +195,14 @@ class Demonstrations(DemonstrationSet):
         """How many leading numbers of a state are its position: n less the phase."""
         return self.dim - self.phase_dim
 
+    def state_scales(self) -> tuple[float, float]:
+        """The largest distance of a demonstrated state from the target and the largest
+        demonstrated speed of the states, a phase included (the positions' own without one):
+        the scales of :meth:`Normalization.fit`."""
+        states = np.concatenate([demo.states for demo in self.demos])
+        speed = max(np.linalg.norm(demo.velocities, axis=-1).max() for demo in self.demos)
+        return float(np.linalg.norm(states - self.target, axis=-1).max()), float(speed)
+
     def select(self, indices: list[int] | tuple[int, ...] | range) -> Demonstrations:
         """The demonstrations at ``indices``, in that order, with the same target."""
         indices = list(indices)
@@ -216,24 +224,32 @@ class Normalization:
         center: The target x* in user units, shape (n,).
         length: Length scale L > 0 (user units).
         time: Time scale tau > 0 (seconds).
+        extent: The positions' extent (user units), what tolerances and scale-free figures
+            are fractions of: L itself (None) unless a phase is in the state.
     """
 
     center: np.ndarray
     length: float
     time: float
+    extent: float | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "center", _as_float_array(self.center, "center", 1))
         if not (np.isfinite(self.length) and self.length > 0):
             raise DataError(f"normalisation length must be positive and finite, got {self.length}")
+        if self.extent is None:
+            object.__setattr__(self, "extent", float(self.length))
+        if not (np.isfinite(self.extent) and self.extent > 0):
+            raise DataError(f"normalisation extent must be positive and finite, got {self.extent}")
         if not (np.isfinite(self.time) and self.time > 0):
             raise DataError(f"normalisation time must be positive and finite, got {self.time}")
 
     @classmethod
     def fit(cls, demos: Demonstrations) -> Normalization:
-        """Maps the target to 0, the extent to 1, and the fastest demonstrated speed to 1."""
-        length = demos.extent()
-        speed = demos.max_speed()
+        """Maps the target to 0, the extent to 1, and the fastest demonstrated speed to 1: of
+        the whole state, so that a phase (:mod:`snds.phase`) is scaled with the positions
+        (:meth:`Demonstrations.state_scales`)."""
+        length, speed = demos.state_scales()
         named = f"{demos.name}: " if demos.name else ""
         if length <= 0:
             raise DataError(
@@ -254,7 +270,7 @@ class Normalization:
                     f"range [{_FLOAT32_TINY:.3g}, {_FLOAT32_MAX:.3g}]: give the data in other "
                     "units"
                 )
-        return cls(center=demos.target, length=length, time=length / speed)
+        return cls(center=demos.target, length=length, time=length / speed, extent=demos.extent())
 
     def positions_to_model(self, x: np.ndarray) -> np.ndarray:
         """User positions (*, n) to model coordinates (*, n)."""
@@ -274,7 +290,12 @@ class Normalization:
 
     def to_dict(self) -> dict:
         """JSON-ready form."""
-        return {"center": self.center.tolist(), "length": self.length, "time": self.time}
+        return {
+            "center": self.center.tolist(),
+            "length": self.length,
+            "time": self.time,
+            "extent": self.extent,
+        }
 
     @classmethod
     def from_dict(cls, data: dict) -> Normalization:
@@ -284,6 +305,8 @@ class Normalization:
                 center=np.asarray(data["center"], dtype=np.float64),
                 length=float(data["length"]),
                 time=float(data["time"]),
+                # Records before the phase: the extent was the length.
+                extent=None if data.get("extent") is None else float(data["extent"]),
             )
         except (KeyError, TypeError) as error:
             raise DataError(f"malformed normalisation record: {error}") from error
