@@ -179,7 +179,9 @@ def test_cli_train_evaluate_plot_export_with_a_phase(tmp_path, capsys):
     assert record["policy"]["phase_dim"] == 2 and record["dim"] == 4
     assert main(["--quiet", "evaluate", str(out), "--rollouts", "50", "--samples", "2000"]) == 0
     assert main(["--quiet", "plot", str(out), "--out", str(tmp_path / "plots")]) == 0
-    assert (tmp_path / "plots" / "rollout_lyapunov.png").is_file()
+    # A field of the plane would hide the phase: paths without streamlines.
+    written = sorted(p.name for p in (tmp_path / "plots").iterdir())
+    assert written == ["loss.png", "paths.png", "rollout_lyapunov.png"]
     # Obstacles are refused with one line, for every command that takes them.
     sphere = ["--obstacle", "sphere:-20,0,3"]
     assert main(["--quiet", "evaluate", str(out), *sphere]) == 2

@@ -359,8 +359,9 @@ def plot_all(
 
     Returns:
         The paths written: for a position policy ``streamlines.png``, then ``lyapunov.png``;
-        ``rollout_lyapunov.png`` for a stable policy; ``paths3d.png`` when positions are 3-D
-        (with orientation frames for poses); then ``loss.png``.
+        ``rollout_lyapunov.png`` for a stable policy; ``paths.png`` when 2-D positions are
+        part of a larger state (a phase); ``paths3d.png`` when positions are 3-D (with
+        orientation frames for poses); then ``loss.png``.
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -395,6 +396,13 @@ def plot_all(
         paths.append(
             plot_rollout_lyapunov(
                 policy, rollouts, dt, out / "rollout_lyapunov.png", perturbed=perturbed
+            )
+        )
+    if p == 2 and not positions_only:
+        # A field over the plane needs the rest of the state (a phase): paths only.
+        paths.append(
+            plot_paths(
+                demos, rollouts, out / "paths.png", perturbed=perturbed, title=_name(demos, policy)
             )
         )
     if p == 3:
@@ -511,6 +519,40 @@ def _draw_scene(ax, scene, x1: np.ndarray, x2: np.ndarray, points: np.ndarray) -
 
 #: Colours of a frame's x, y and z axes (the usual red, green, blue).
 FRAME_COLORS = ("#e03131", "#2f9e44", "#1971c2")
+
+
+def plot_paths(
+    demos: Demonstrations,
+    rollouts: np.ndarray,
+    path: str | Path,
+    *,
+    perturbed: np.ndarray | None = None,
+    title: str = "",
+) -> Path:
+    """Paths in the plane of x1, x2 without a field: demonstrations (dark), rollouts from
+    their starts (orange), rollouts from perturbed and random starts (dashed), the target.
+
+    For a state whose velocity at a point of the plane depends on more than the point (a
+    phase), where streamlines of the plane would mislead.
+
+    Arguments:
+        demos: The demonstrations; their first two columns are drawn.
+        rollouts: Rollouts from the demonstrations' starts, shape (B, T, n).
+        path: Where to write the PNG.
+        perturbed: Rollouts from other starts, shape (B, T, n).
+        title: The plot's title.
+
+    Returns:
+        The path written.
+    """
+    # Every drawn point in view: nothing here is clipped to a field's grid.
+    drawn = [np.reshape(r, (-1, np.shape(r)[-1])) for r in (rollouts, perturbed) if r is not None]
+    (x1, x2), _ = _plane(demos, include=drawn)
+    fig, ax = _figure(x1, x2, colorbar=False)
+    _draw_paths(ax, demos, rollouts, perturbed)
+    _finish(ax, x1, x2, 2, title)
+    _legend(fig, ax)
+    return _save(fig, path)
 
 
 def plot_paths_3d(
@@ -663,7 +705,7 @@ def _smooth(values: np.ndarray) -> np.ndarray:
 # --- drawing ---------------------------------------------------------------------------------
 
 
-def _figure(x1: np.ndarray | None = None, x2: np.ndarray | None = None):
+def _figure(x1: np.ndarray | None = None, x2: np.ndarray | None = None, *, colorbar: bool = True):
     """A figure with one axes; given the view's ticks, equal aspect and a size that fits it.
 
     A fixed figure size would leave wide motions (LASA's Sine is 6:3) floating in white
@@ -677,7 +719,7 @@ def _figure(x1: np.ndarray | None = None, x2: np.ndarray | None = None):
     width, height = (
         (AXES_INCHES, AXES_INCHES * ratio) if ratio < 1 else (AXES_INCHES / ratio, AXES_INCHES)
     )
-    size = (max(width, 2.5) + 1.9, max(height, 2.0) + 1.7)
+    size = (max(width, 2.5) + (1.9 if colorbar else 0.9), max(height, 2.0) + 1.7)
     fig = Figure(figsize=size, dpi=DPI, layout="constrained")
     ax = fig.add_subplot()
     ax.set_aspect("equal")
