@@ -859,7 +859,8 @@ def load_pt2(path: str | Path) -> Callable[[np.ndarray], np.ndarray]:
 
     @torch.no_grad()
     def run(x: np.ndarray) -> np.ndarray:
-        return module(torch.as_tensor(np.asarray(x), dtype=dtype)).numpy()
+        # A copy: the caller's array may be read-only, which torch cannot wrap.
+        return module(torch.tensor(np.asarray(x), dtype=dtype)).numpy()
 
     return run
 

@@ -39,6 +39,8 @@ def test_sincos_under_vmap():
     assert torch.allclose(angles.grad, torch.cos(2 * angles.detach()), atol=1e-12)
 
 
+# torch.jit.trace is deprecated, and still a tracer the fused path must stay out of.
+@pytest.mark.filterwarnings("ignore:`torch.jit.trace` is deprecated:DeprecationWarning")
 def test_the_fused_path_is_taken_only_where_autograd_records():
     assert fused.active()
     with torch.no_grad():
