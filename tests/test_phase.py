@@ -189,7 +189,28 @@ def test_cli_train_evaluate_plot_export_with_a_phase(tmp_path, capsys):
     assert "phase" in capsys.readouterr().err and not (tmp_path / "o.onnx").exists()
     pytest.importorskip("onnxruntime", reason="the export needs the export extra")
     assert main(["--quiet", "export", str(out), "--out", str(tmp_path / "m.onnx")]) == 0
-    assert (tmp_path / "m.onnx").is_file()
+    # The file holds the starts a controller takes a new start's phase from, and its graph
+    # gives the library's velocity and phase rate there.
+    import onnx
+
+    from snds.export import load_onnx
+
+    meta = {p.key: p.value for p in onnx.load(str(tmp_path / "m.onnx")).metadata_props}
+    demos = DataSource(motion="Sine", demos=2, phase=Phase(codes=2)).load()
+    starts = np.array(json.loads(meta["snds.start_states"]))
+    np.testing.assert_array_equal(starts, np.stack([d.states[0] for d in demos]))
+    position = np.array([-30.0, 5.0])
+    nearest = starts[np.argmin(np.linalg.norm(starts[:, :2] - position, axis=1))]
+    state = np.concatenate([position, nearest[2:]])
+    np.testing.assert_array_equal(state, start_state(demos, position))
+    policy, _ = load_model(out)
+    expected = policy.to(torch.float64).predict(state[None])
+    np.testing.assert_allclose(
+        load_onnx(tmp_path / "m.onnx")(state[None]),
+        expected,
+        rtol=1e-3,
+        atol=1e-4 * np.abs(expected).max(),
+    )
 
 
 @pytest.mark.parametrize("codes", ["0", "x"])
@@ -228,3 +249,12 @@ def test_the_simulated_arm_keeps_the_phase_and_it_waits_while_held(trained, phas
     np.testing.assert_allclose(commander.state[2:], first[2:] + dt * velocity[2:], rtol=1e-6)
     with pytest.raises(snds.errors.SNDSError, match="shape"):
         commander.start_pose(start[:2])
+
+
+def test_export_refuses_start_states_of_another_shape(trained, tmp_path):
+    pytest.importorskip("onnx", reason="the export needs the export extra")
+    from snds.export import ExportError, export_onnx
+
+    with pytest.raises(ExportError, match=r"shape \(D, 5\); got \(2, 4\)"):
+        export_onnx(trained, tmp_path / "m.onnx", starts=np.zeros((2, 4)))
+    assert not (tmp_path / "m.onnx").exists()

@@ -604,13 +604,22 @@ def _leaky_relu_onnx(self, negative_slope: float = 0.01):
     return op.Max(self, op.Mul(self, slope))
 
 
-def export_onnx(policy: Policy, path: str | Path, *, dtype: torch.dtype = torch.float32) -> Path:
+def export_onnx(
+    policy: Policy,
+    path: str | Path,
+    *,
+    dtype: torch.dtype = torch.float32,
+    starts: np.ndarray | None = None,
+) -> Path:
     """Exports a policy to ONNX (opset 18), with a dynamic batch dimension.
 
     Arguments:
         policy: The policy; it is copied, not changed.
         path: The file to write.
         dtype: Precision of the graph, its input and its output.
+        starts: The demonstrations' start states (D, n), written as ``snds.start_states`` (a
+            JSON list of lists): what a controller of a model with a phase takes a new
+            start's phase from (:func:`snds.phase.start_state`).
 
     Returns:
         The path written. The graph maps ``x`` (B, n) to velocities (B, n), user units (a
@@ -622,6 +631,7 @@ def export_onnx(policy: Policy, path: str | Path, *, dtype: torch.dtype = torch.
         policy's also ``snds.angle_extent`` (radians) and ``snds.top_angular_speed`` (rad/s).
     """
     _check_dtype(dtype)
+    start_states = None if starts is None else _start_states(policy, starts)
     try:
         import onnx
     except ImportError as error:
@@ -650,6 +660,7 @@ def export_onnx(policy: Policy, path: str | Path, *, dtype: torch.dtype = torch.
         "snds.method": policy.method,
         # A modulated policy (snds.obstacles) records its fixed obstacles.
         **getattr(policy, "export_metadata", dict)(),
+        **({} if start_states is None else {"snds.start_states": start_states}),
     }
     for key, value in metadata.items():
         entry = model.metadata_props.add()
@@ -657,6 +668,16 @@ def export_onnx(policy: Policy, path: str | Path, *, dtype: torch.dtype = torch.
     path = Path(path)
     atomic_write(path, lambda tmp: onnx.save(model, str(tmp)))
     return path
+
+
+def _start_states(policy: Policy, starts: np.ndarray) -> str:
+    """``starts`` (D, n) as the JSON of ``snds.start_states``, or an error naming the shape."""
+    starts = np.asarray(starts, dtype=np.float64)
+    if starts.ndim != 2 or starts.shape[1] != policy.space.dim or not np.isfinite(starts).all():
+        raise ExportError(
+            f"start states must be finite, of shape (D, {policy.space.dim}); got {starts.shape}"
+        )
+    return json.dumps(starts.tolist())
 
 
 def _scalar_tensor_onnx(

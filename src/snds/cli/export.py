@@ -5,11 +5,13 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from snds.cli._args import _obstacle_arguments
 from snds.cli._common import _scene
-from snds.errors import ConfigError
+from snds.data import DataSource
+from snds.errors import ConfigError, SNDSError
 from snds.io import to_jsonable, write_json
 from snds.models import load_model
 from snds.obstacles import ModulatedPolicy
@@ -49,12 +51,16 @@ def run(args: argparse.Namespace) -> int:
     from snds import export
 
     scene = _scene(args)
-    policy, _ = load_model(args.model)
+    policy, description = load_model(args.model)
     if scene is not None:
         policy = _with_obstacles(policy, scene)
     out = args.out or args.model / f"policy.{args.format}"
     dtype = getattr(torch, args.dtype)
-    path = export.FORMATS[args.format](policy, out, dtype=dtype)
+    extra = {}
+    if args.format == "onnx" and policy.space.dim != policy.space.position_dim:
+        # A controller of a model with a phase takes a new start's phase from these.
+        extra["starts"] = _start_states(args.model, description)
+    path = export.FORMATS[args.format](policy, out, dtype=dtype, **extra)
     check = export.verify(path, policy, samples=args.samples, seed=args.seed)
     write_json(path.with_name(path.name + ".check.json"), to_jsonable(check.to_dict()))
     if not check.passed:
@@ -73,6 +79,15 @@ def run(args: argparse.Namespace) -> int:
             f"{check.max_abs_diff:.2e} absolute)"
         )
     return 0
+
+
+def _start_states(model: Path, description: dict) -> np.ndarray:
+    """The start states (D, n + m) of the demonstrations a model with a phase was trained on."""
+    recorded = description.get("data") or {}
+    if "phase" not in recorded:
+        raise SNDSError(f"{model}: a model with a phase, but model.json records no phase")
+    demos = DataSource.from_record(recorded).load()
+    return np.stack([demo.states[0] for demo in demos])
 
 
 def _with_obstacles(policy: Policy, scene) -> Policy:
