@@ -102,36 +102,44 @@ def end_spread_message(
     max_end_spread: float,
     numbers: list[int],
 ) -> str:
-    """Which demonstrations end too far from the target, and the two fixes.
+    """Which demonstrations end too far from the others, and the fixes.
 
-    A demonstration whose end lies where another starts (within a tenth of the allowed
-    spread) is most likely one stroke recorded as two: the message says so.
+    The outliers are the ends farther than ``max_end_spread`` extents from the median of the
+    ends (per coordinate): unlike the mean, one far end does not drag it away from the rest,
+    so the message names that one, not all. A far end that lies where another
+    demonstration starts (within a tenth of the allowed spread), whose own end is not far,
+    is most likely one stroke recorded as two: the message says so.
 
     Arguments:
         ends: End positions, shape (k, n).
         starts: Start positions, shape (k, n).
-        target: The mean of the ends, shape (n,).
+        target: The mean of the ends, shape (n,) (a fallback when no end is an outlier).
         extent: The motion's extent.
         max_end_spread: The limit, in extents.
         numbers: The demonstrations' numbers in their file.
     """
-    distances = np.linalg.norm(ends - target, axis=-1) / extent
-    far = [i for i in np.argsort(-distances) if distances[i] > max_end_spread]
+    distances = np.linalg.norm(ends - np.median(ends, axis=0), axis=-1) / extent
+    far = [int(i) for i in np.argsort(-distances) if distances[i] > max_end_spread]
+    if not far:
+        distances = np.linalg.norm(ends - target, axis=-1) / extent
+        far = [int(i) for i in np.argsort(-distances) if distances[i] > max_end_spread]
     named = ", ".join(f"demonstration {numbers[i]} ({distances[i]:.2f} extents)" for i in far)
     kept = [numbers[i] for i in range(len(numbers)) if i not in far]
     fixes = []
     for i in far:
         gaps = np.linalg.norm(starts - ends[i], axis=-1) / extent
-        gaps[i] = np.inf
+        gaps[far] = np.inf
         j = int(np.argmin(gaps))
         if gaps[j] <= 0.1 * max_end_spread:
             fixes.append(
                 f"demonstration {numbers[i]} ends where demonstration {numbers[j]} starts: one "
-                "stroke split in two? give both parts one demo label"
+                "stroke split in two? (in a CSV, give both parts one demo label)"
             )
     if kept:
-        keep = ",".join(map(str, kept))
-        fixes.append(f"drop {'it' if len(far) == 1 else 'them'} (--demos {keep})")
-    needed = np.ceil(distances.max() * 100) / 100
+        fixes.append(
+            f"drop {'it' if len(far) == 1 else 'them'} (--demos {','.join(map(str, kept))})"
+        )
+    # The limit applies to the distance from the mean, which is what must be raised.
+    needed = np.ceil(np.linalg.norm(ends - target, axis=-1).max() / extent * 100) / 100
     fixes.append(f"raise --max-end-spread to {needed:.2f} if the ends should be merged")
     return f"outlying: {named}; " + "; or ".join(fixes)
