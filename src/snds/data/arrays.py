@@ -68,8 +68,7 @@ def project_rotations(matrices: np.ndarray) -> tuple[np.ndarray, float]:
         Unit quaternions (x, y, z, w) of the rotations, shape (..., 4), and the deviation.
     """
     u, sigma, vt = np.linalg.svd(matrices)
-    sign = np.sign(np.linalg.det(u @ vt))
-    sign[sign == 0] = 1.0
+    sign = np.where(np.linalg.det(u @ vt) < 0, -1.0, 1.0)
     u[..., :, 2] *= sign[..., None]
     signed = sigma.copy()
     signed[..., 2] *= sign

@@ -72,10 +72,12 @@ def _bags_in(folder: Path) -> list[Path]:
 
 def bag_tracks(path: Path, options: ReadOptions) -> list[Track]:
     """One track per bag (module doc)."""
-    bags = [path] if path.is_file() else _bags_in(path)
+    bags = _bags_in(path) if path.is_dir() else [path]
+    if bags == [path]:
+        return [_bag_track(path, options)]
     tracks = []
     for bag in bags:
-        with labelled(bag.name if bag != path else ""):
+        with labelled(bag.name):
             tracks.append(_bag_track(bag, options))
     return tracks
 

@@ -117,6 +117,7 @@ def load_recording(
         raise DataError(f"{path}: no such file")
     reader = _reader(path, options)
     if reader is None:
+        _check_table(path)
         return _table(path, options, select, max_end_spread, gaps)
     with labelled(str(path)):
         tracks = reader.tracks(path, options)
@@ -141,6 +142,23 @@ def holds_poses(path: str | Path, options: ReadOptions = ReadOptions()) -> bool:
     except DataError:
         return False
     return bool(tracks) and tracks[0].orientations is not None
+
+
+#: What :func:`load_recording` reads, for the message about anything else.
+SUPPORTED = (
+    ".bag, .csv, .db3, .h5, .hdf5, .mat, .mcap, .npy, .npz, or a folder: rosbag2, bags, "
+    "LeRobot dataset"
+)
+
+
+def _check_table(path: Path) -> None:
+    if path.is_dir():
+        raise DataError(
+            f"{path}: not a rosbag2 folder (metadata.yaml), a folder of bags or a LeRobot "
+            "dataset (meta/info.json)"
+        )
+    if path.suffix.lower() not in (".csv", ".npz", ".mat"):
+        raise DataError(f"{path}: unsupported file type {path.suffix!r} (supported: {SUPPORTED})")
 
 
 def _table(
