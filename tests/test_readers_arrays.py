@@ -16,6 +16,7 @@ from snds.cli import _build_parser
 from snds.cli._common import _data_source
 from snds.data import DataSource, ReadOptions, load_recording
 from snds.data.arrays import project_rotations
+from snds.data.options import DataWarning
 from snds.data.poses import PoseDemonstrations
 from snds.errors import DataError
 
@@ -61,7 +62,7 @@ def test_centimetres_without_a_unit_warn_that_a_pose_task_is_50_m_wide(tmp_path)
     path = tmp_path / "demos.npy"
     np.save(path, two_demos() * [100, 100, 100, 1, 1, 1, 1])
     options = ReadOptions(rate=50, quaternion_order="xyzw")
-    with pytest.warns(UserWarning, match="span 40 m.*--length-unit cm"):
+    with pytest.warns(DataWarning, match="span 40 m.*--length-unit cm"):
         load_recording(path, options=options)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
@@ -117,7 +118,7 @@ def test_transforms_are_projected_onto_rotations_and_their_deviation_reported(tm
     noisy[..., :3, :3] += 0.004 * np.random.default_rng(0).uniform(-1, 1, (2, 40, 3, 3))
     np.save(tmp_path / "tf.npy", noisy)
     # WHEN read: a warning reports the deviation, and the rotations are the nearest ones
-    with pytest.warns(UserWarning, match=r"deviate from SO\(3\) by up to 0\.0"):
+    with pytest.warns(DataWarning, match=r"deviate from SO\(3\) by up to 0\.0"):
         demos = load_recording(tmp_path / "tf.npy", options=ReadOptions(rate=30))
     angles = (
         Rotation.from_quat(demos[0].orientations[:-1]) * Rotation.from_quat(poses[0, :-1, 3:]).inv()
@@ -260,3 +261,15 @@ def test_panda_recording_loads_with_its_time_row():
     # The arm is held still for 0.33 s first: 1 % of the top speed trims it.
     trimmed = DataSource(file=PANDA, quaternion_order="wxyz", trim_idle=0.01).load()
     assert 1700 < len(trimmed[0].times) < 1986
+
+
+def test_the_cli_prints_a_data_warning_as_one_line(tmp_path, capsys):
+    from snds.cli import main
+
+    path = tmp_path / "cm.npy"
+    np.save(path, two_demos() * [100, 100, 100, 1, 1, 1, 1])
+    argv = ["--quiet", "train", "--data", str(path), "--rate", "50", "--quaternion-order", "xyzw"]
+    out = ["--out", str(tmp_path / "model"), "--steps", "3", "--rollouts", "5", "--samples", "50"]
+    assert main([*argv, *out]) == 0
+    err = capsys.readouterr().err
+    assert err.startswith("snds: warning: pose positions span 40 m") and err.count("\n") == 1, err

@@ -31,7 +31,7 @@ import numpy as np
 import scipy.io
 from scipy.spatial.transform import Rotation
 
-from snds.data.options import ReadOptions, to_xyzw
+from snds.data.options import DataWarning, ReadOptions, to_xyzw
 from snds.data.tracks import Track
 from snds.errors import DataError
 
@@ -151,6 +151,7 @@ def _transform_tracks(transforms: np.ndarray) -> list[Track]:
         warnings.warn(
             f"rotation blocks deviate from SO(3) by up to {deviation:.3g}; projected onto the "
             "nearest rotations",
+            DataWarning,
             stacklevel=2,
         )
     positions = transforms[..., :3, 3]

@@ -21,6 +21,7 @@ import numpy as np
 from snds.errors import DataError
 
 __all__ = [
+    "DataWarning",
     "LENGTH_UNITS",
     "QUATERNION_ORDERS",
     "ReadOptions",
@@ -40,6 +41,11 @@ LENGTH_UNITS = {
 
 #: Accepted orders of a quaternion's four numbers; snds works in (x, y, z, w) (SciPy, roma).
 QUATERNION_ORDERS = ("xyzw", "wxyz")
+
+
+class DataWarning(UserWarning):
+    """Data that load but are probably not what the user meant (positions in centimetres
+    read as metres, rotation blocks that needed projecting); the CLI prints it as one line."""
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -26,7 +26,7 @@ import numpy as np
 
 from snds.data.demonstrations import Demonstration, Demonstrations
 from snds.data.idle import DEFAULT_REST_SPEED, idle_span, rest_splits
-from snds.data.options import ReadOptions
+from snds.data.options import DataWarning, ReadOptions
 from snds.data.poses import PoseDemonstration, PoseDemonstrations, common_pose_target
 from snds.data.targets import MAX_END_SPREAD, common_target
 from snds.errors import DataError
@@ -205,5 +205,6 @@ def _warn_if_not_metres(demos: list[PoseDemonstration], options: ReadOptions) ->
             f"pose positions span {span:.4g} m, more than a robot reaches; if they are in "
             "centimetres or millimetres, give --length-unit cm or mm "
             "(ReadOptions(length_unit=...))",
+            DataWarning,
             stacklevel=2,
         )
