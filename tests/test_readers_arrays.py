@@ -273,3 +273,21 @@ def test_the_cli_prints_a_data_warning_as_one_line(tmp_path, capsys):
     assert main([*argv, *out]) == 0
     err = capsys.readouterr().err
     assert err.startswith("snds: warning: pose positions span 40 m") and err.count("\n") == 1, err
+
+
+def test_npz_of_transforms_with_times_or_a_key(tmp_path):
+    poses = two_demos()
+    t = np.cumsum(np.r_[0, np.full(39, 0.01) + 0.002 * (np.arange(39) % 3)])
+    np.savez(tmp_path / "tf.npz", pose=transforms(poses), t=t)
+    demos = load_recording(tmp_path / "tf.npz")
+    np.testing.assert_allclose(demos[1].times, t)
+    np.testing.assert_allclose(demos[1].positions, poses[1, :, :3], atol=1e-12)
+    # The stamps are the file's: a rate beside them is refused.
+    with pytest.raises(DataError, match="stores its time stamps; --rate"):
+        load_recording(tmp_path / "tf.npz", options=ReadOptions(rate=100))
+    # Two arrays of transforms: the key chooses.
+    np.savez(tmp_path / "two.npz", a=transforms(poses), b=transforms(poses[:1]), dt=0.02)
+    with pytest.raises(DataError, match="choose the transforms with --key from: a, b"):
+        load_recording(tmp_path / "two.npz")
+    one = load_recording(tmp_path / "two.npz", options=ReadOptions(key="b"))
+    assert len(one) == 1 and one[0].duration == pytest.approx(39 * 0.02)

@@ -14,6 +14,10 @@ length unit).
 
 D demonstrations of T samples each; no times (``rate`` required).
 
+``.npz`` of transforms: one array of shape (D, T, 4, 4) or (T, 4, 4) (named by ``key``, or
+the only such array), with optional times ``t`` (D, T) or (T,), or a scalar step ``dt``;
+else ``rate``. Other ``.npz`` files are the table layout of :func:`~snds.data.load_npz`.
+
 ``.mat`` pose matrices (any file without the LPV-DS ``Data``/``data`` variables, or with
 ``key`` given): a matrix of 7 or 8 rows (or columns), x, y, z, a quaternion, and in the
 8th a time row in seconds; it is a variable, a field of a struct variable
@@ -40,8 +44,10 @@ __all__ = [
     "ROTATION_WARNING",
     "UNIT_TOLERANCE",
     "looks_like_poses",
+    "holds_transforms",
     "mat_pose_tracks",
     "npy_tracks",
+    "npz_transform_tracks",
     "project_rotations",
 ]
 
@@ -159,6 +165,70 @@ def _transform_tracks(transforms: np.ndarray) -> list[Track]:
         Track(positions[i], quaternions[i], None, f"demonstration {i}")
         for i in range(len(transforms))
     ]
+
+
+# NPZ transforms.
+
+
+def _npz_arrays(path: Path) -> dict[str, np.ndarray]:
+    try:
+        with np.load(path, allow_pickle=False) as archive:
+            return {key: archive[key] for key in archive.files}
+    # numpy raises several kinds of error for a damaged archive; all mean the same to a user.
+    except Exception as error:
+        raise DataError(f"not a readable .npz archive: {error}") from error
+
+
+def _transform_keys(arrays: dict[str, np.ndarray]) -> list[str]:
+    return [k for k, v in arrays.items() if v.ndim in (3, 4) and v.shape[-2:] == (4, 4)]
+
+
+def holds_transforms(path: Path, options: ReadOptions) -> bool:
+    """An ``.npz`` file with an array of 4x4 transforms (or with ``key`` given)."""
+    if not (path.is_file() and path.suffix.lower() == ".npz"):
+        return False
+    if options.key is not None:
+        return True
+    try:
+        with np.load(path, allow_pickle=False) as archive:
+            return any(
+                archive[key].ndim in (3, 4) and archive[key].shape[-2:] == (4, 4)
+                for key in archive.files
+            )
+    # An unreadable archive goes to the table reader, whose errors already say why.
+    except Exception:
+        return False
+
+
+def npz_transform_tracks(path: Path, options: ReadOptions) -> list[Track]:
+    """The demonstrations of an ``.npz`` of transforms (layout in the module doc)."""
+    arrays = _npz_arrays(path)
+    keys = _transform_keys(arrays)
+    key = options.key
+    if key is None:
+        if len(keys) != 1:
+            raise DataError(f"choose the transforms with --key from: {', '.join(keys)}")
+        key = keys[0]
+    if key not in keys:
+        found = ", ".join(keys) or "none"
+        raise DataError(f"no array {key!r} of 4x4 transforms (found: {found})")
+    transforms = _numeric(arrays[key], repr(key))
+    transforms = transforms[None] if transforms.ndim == 3 else transforms
+    tracks = _transform_tracks(transforms)
+    shape = transforms.shape[:2]
+    if "t" in arrays:
+        times = _numeric(arrays["t"], "'t'")
+        if times.shape not in (shape, shape[1:]):
+            raise DataError(f"'t' must have shape {shape} or {shape[1:]}, got {times.shape}")
+        times = np.broadcast_to(times, shape)
+    elif "dt" in arrays:
+        step = _numeric(arrays["dt"], "'dt'")
+        if step.size != 1 or step.item() <= 0:
+            raise DataError(f"'dt' must be one positive number, got shape {step.shape}")
+        times = np.broadcast_to(step.item() * np.arange(shape[1]), shape)
+    else:
+        return tracks
+    return [Track(t.positions, t.orientations, times[i], t.label) for i, t in enumerate(tracks)]
 
 
 # MATLAB pose matrices.

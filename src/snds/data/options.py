@@ -54,14 +54,15 @@ class ReadOptions:
 
     Attributes:
         rate: Sampling rate in Hz of a recording that stores no time stamps (a ``.npy``
-            array, a ``.mat`` matrix without a time row, an ``.npz`` without ``t``/``dt``, an
-            HDF5 demo without ``timestamp``); None: the file must store its times (an ``.npz``
-            falls back to 0.01 s as before). Refused for a file whose samples carry times.
+            array, a ``.mat`` matrix without a time row or ``dt``, an ``.npz`` of transforms
+            without ``t``/``dt``, an HDF5 file); None: such a file is refused, naming the
+            option. Refused for a file whose samples carry times, and for the table files
+            (CSV, NPZ ``pos``, LPV-DS ``.mat``), which state theirs.
         quaternion_order: Order of the four numbers of a quaternion in an array whose columns
-            are not named (``.npy``, ``.mat``, ``.npz`` ``quat``, HDF5, LeRobot columns), one
-            of :data:`QUATERNION_ORDERS`. CSV headers and ROS messages name their fields, so
-            it does not apply to them. None: ``xyzw`` where a layout documents it (``.npz``
-            ``quat``), and an error naming the option where the file cannot say.
+            are not named (``.npy``, ``.mat``, HDF5, LeRobot columns), one of
+            :data:`QUATERNION_ORDERS`. CSV headers, ROS messages and an ``.npz``'s ``quat``
+            (documented (x, y, z, w)) name their order, so it does not apply to them. None:
+            an error naming the option where the file cannot say.
         length_unit: The unit of the file's positions, one of :data:`LENGTH_UNITS`; they are
             converted to metres. None: positions stay as stored.
         trim_idle: Drop the samples at the start and end of each demonstration where it has

@@ -3,7 +3,8 @@ holds poses.
 
 :func:`load_recording` chooses the reader by what the path is (:data:`READERS`, first match):
 a ROS bag (rosbag2 folder, ``.mcap``, ``.db3``, ROS 1 ``.bag``) or a folder of them, a LeRobot
-dataset folder, an HDF5 file, a ``.npy`` array, a ``.mat`` pose matrix; anything else is a
+dataset folder, an HDF5 file, a ``.npy`` array, an ``.npz`` of 4x4 transforms, a ``.mat``
+pose matrix; anything else is a
 table file (``.csv``, ``.npz``, LPV-DS ``.mat``) read by :func:`~snds.data.load_demonstrations`
 or :func:`~snds.data.poses.load_poses`. Recordings go through
 :func:`~snds.data.tracks.assemble_tracks`, so the :class:`~snds.data.options.ReadOptions` act
@@ -13,6 +14,7 @@ the same on all of them.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -72,6 +74,7 @@ READERS = (
     Reader("LeRobot dataset", lerobot.is_dataset, lerobot.dataset_tracks),
     Reader("HDF5 (robomimic)", _suffix(".hdf5", ".h5"), hdf5.hdf5_tracks),
     Reader(".npy array", _suffix(".npy"), arrays.npy_tracks),
+    Reader(".npz of transforms", arrays.holds_transforms, arrays.npz_transform_tracks),
     Reader(".mat pose matrix", _mat_pose, arrays.mat_pose_tracks),
 )
 
@@ -120,7 +123,7 @@ def load_recording(
         _check_table(path)
         return _table(path, options, select, max_end_spread, gaps)
     with labelled(str(path)):
-        tracks = reader.tracks(path, options)
+        tracks = _tracks(reader, path, options)
         return assemble_tracks(
             tracks,
             options=options,
@@ -131,6 +134,21 @@ def load_recording(
         )
 
 
+def _tracks(reader: Reader, path: Path, options: ReadOptions) -> tuple[Track, ...]:
+    """The reader's tracks, read once for a :class:`~snds.data.DataSource`'s check of what the
+    file holds and its load (a long bag takes seconds to deserialise)."""
+    files = [path] if path.is_file() else sorted(p for p in path.rglob("*") if p.is_file())
+    stamp = tuple((str(f), f.stat().st_mtime_ns, f.stat().st_size) for f in files)
+    return _read_once(reader, path, stamp, options)
+
+
+@functools.lru_cache(maxsize=2)
+def _read_once(reader: Reader, path: Path, stamp: tuple, options: ReadOptions) -> tuple[Track, ...]:
+    # ``stamp`` (every file's name, time and size) is part of the key: a rewritten file is
+    # read again.
+    return tuple(reader.tracks(path, options))
+
+
 def holds_poses(path: str | Path, options: ReadOptions = ReadOptions()) -> bool:
     """Whether a file holds poses (False if it cannot be read: loading it says why)."""
     path = Path(path)
@@ -138,7 +156,7 @@ def holds_poses(path: str | Path, options: ReadOptions = ReadOptions()) -> bool:
         reader = _reader(path, options)
         if reader is None:
             return is_pose_file(path)
-        tracks = reader.tracks(path, options)
+        tracks = _tracks(reader, path, options)
     except DataError:
         return False
     return bool(tracks) and tracks[0].orientations is not None
@@ -172,8 +190,8 @@ def _table(
     given = [flag for name, flag in _RECORDING_ONLY.items() if getattr(options, name)]
     if given:
         raise DataError(
-            f"{path}: {', '.join(given)} apply to recordings (.npy, .mat pose matrices, ROS "
-            "bags, LeRobot, HDF5), not to a CSV, NPZ or LPV-DS .mat file"
+            f"{path}: {', '.join(given)} apply to recordings (.npy, .npz transforms, .mat "
+            "pose matrices, ROS bags, LeRobot, HDF5), not to a CSV, NPZ or LPV-DS .mat file"
         )
     if options.rate is not None or options.quaternion_order not in (None, "xyzw"):
         raise DataError(
