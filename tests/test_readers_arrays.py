@@ -291,3 +291,9 @@ def test_npz_of_transforms_with_times_or_a_key(tmp_path):
         load_recording(tmp_path / "two.npz")
     one = load_recording(tmp_path / "two.npz", options=ReadOptions(key="b"))
     assert len(one) == 1 and one[0].duration == pytest.approx(39 * 0.02)
+
+
+def test_a_mat_file_with_neither_layout_says_what_it_found(tmp_path):
+    scipy.io.savemat(tmp_path / "other.mat", {"joints": np.ones((7, 7)), "q": np.zeros((3, 50))})
+    with pytest.raises(DataError, match=r"no variable 'Data' or 'data' .*\(found: joints, q\)"):
+        DataSource(file=tmp_path / "other.mat").load()

@@ -245,6 +245,12 @@ def mat_pose_tracks(path: Path, options: ReadOptions) -> list[Track]:
         key = options.key
     elif len(candidates) == 1:
         key = next(iter(candidates))
+    elif not candidates:
+        names = sorted(name for name in contents if not name.startswith("__"))
+        raise DataError(
+            "no variable 'Data' or 'data' (LPV-DS) and no pose matrix of 7 or 8 rows (x, y, z, "
+            f"quaternion[, t]) (found: {', '.join(names) or 'none'})"
+        )
     else:
         found = ", ".join(sorted(candidates)) or "none"
         raise DataError(
