@@ -81,11 +81,13 @@ def write_bag(
     log_delay: float = 0.003,
     zero_stamps: bool = False,
     others: dict[str, str] | None = None,
+    repeat: int = 1,
 ) -> Path:
     """A bag of one message per pose at ``rate`` Hz, logged ``log_delay`` s after its stamp
     (with a jitter, so that stamps and log times differ). ``storage``: ``"mcap"``,
     ``"sqlite3"`` (rosbag2 folders) or ``"ros1"`` (``path`` is the ``.bag``); ``others``: more
-    topics (name: type) with no messages. Returns the path to give to the reader."""
+    topics (name: type) with no messages; ``repeat``: each message published that many
+    times with its one stamp (1 ms apart in the log). Returns the path to give to the reader."""
     types = _ros(storage)
     ros1 = storage == "ros1"
     stamps = EPOCH + np.round(np.arange(len(poses)) * 1e9 / rate).astype(np.int64)
@@ -107,7 +109,10 @@ def write_bag(
             writer.add_connection(name, kind, typestore=types)
         for pose, stamp, delay in zip(poses, stamps, jitter):
             message = _message(types, msgtype, pose, 0 if zero_stamps else int(stamp), ros1=ros1)
-            writer.write(connection, int(stamp + delay), serialize(message, msgtype))
+            for k in range(repeat):
+                writer.write(
+                    connection, int(stamp + delay + k * 10**6), serialize(message, msgtype)
+                )
     return path
 
 

@@ -41,6 +41,13 @@ def test_pose_stamped_reads_poses_and_header_times(tmp_path, storage):
     np.testing.assert_allclose(demos[0].times, expected_times(40), atol=1e-9)
 
 
+def test_a_message_published_twice_with_one_stamp_is_one_sample(tmp_path):
+    poses = line_poses(30)
+    write_bag(tmp_path / "rec", poses, repeat=2)
+    demo = load_recording(tmp_path / "rec")[0]
+    np.testing.assert_allclose(demo.times, expected_times(30), atol=1e-9)
+
+
 def test_a_storage_file_inside_a_rosbag2_folder_reads_as_the_folder(tmp_path):
     write_bag(tmp_path / "rec", line_poses(30), storage="mcap")
     mcap = next((tmp_path / "rec").glob("*.mcap"))

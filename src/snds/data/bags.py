@@ -5,8 +5,9 @@ One bag is one demonstration; a folder of bags gives one per bag, in name order.
 is ``topic``, or the bag's only topic of a type read here (:data:`MESSAGE_TYPES`); a
 ``tf2_msgs/TFMessage`` topic (``/tf``) gives the transform from ``frame`` to ``child_frame``.
 Times are the header stamps; messages without a header (``Pose``), or whose stamps are all
-zero (a recorder that never set them), take the time the bag logged them. Quaternions are
-named fields, so the quaternion order never applies.
+zero (a recorder that never set them), take the time the bag logged them; messages are put
+in stamp order, and of several with one stamp the first is kept. Quaternions are named
+fields, so the quaternion order never applies.
 """
 
 from __future__ import annotations
@@ -121,6 +122,8 @@ def _bag_track(bag: Path, options: ReadOptions) -> Track:
     # the bag knows then.
     nanoseconds = logged if not stamps.any() else stamps
     order = np.argsort(nanoseconds, kind="stable")
+    # A message published twice with one stamp (a republished transform) is one sample.
+    order = order[np.r_[True, np.diff(nanoseconds[order]) > 0]]
     times = (nanoseconds[order] - nanoseconds[order[0]]) * 1e-9
     positions = np.array([rows[i][2] for i in order], dtype=np.float64)
     if rows[0][3] is None:
@@ -143,9 +146,11 @@ def _topic(connections: list, options: ReadOptions) -> list:
     listed = ", ".join(f"{name} ({kind})" for name, kind in sorted(topics.items()))
     wanted = options.topic or ("/tf" if options.frame is not None else None)
     if wanted is None:
-        readable = [name for name, kind in topics.items() if _ros2_name(kind) in MESSAGE_TYPES]
+        # /tf holds many transforms: it is read only when a pair of frames is named.
         readable = [
-            name for name in readable if _ros2_name(topics[name]) != "tf2_msgs/msg/TFMessage"
+            name
+            for name, kind in topics.items()
+            if _ros2_name(kind) in MESSAGE_TYPES and _ros2_name(kind) != "tf2_msgs/msg/TFMessage"
         ]
         if len(readable) != 1:
             raise DataError(f"choose the topic to read with --topic; the bag has: {listed}")
