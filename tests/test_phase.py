@@ -14,10 +14,11 @@ from snds.cli import main
 from snds.data import DataSource, Normalization, no_split
 from snds.errors import ConfigError, DataError
 from snds.evaluate import evaluate
+from snds.method import make_policy
 from snds.models import load_model, save_model
 from snds.phase import Phase, phase_step, start_state
 from snds.rollout import rollout_numpy
-from snds.spaces import Phased
+from snds.spaces import SE3, Euclidean, Phased
 from snds.stability import CheckConfig
 
 from conftest import SMALL
@@ -77,11 +78,29 @@ def test_bad_codes_are_refused(codes):
         Phase(codes=codes)
 
 
-def test_a_phase_is_not_appended_twice_nor_to_poses(phased):
+def test_a_phase_is_not_appended_twice(phased):
     with pytest.raises(DataError, match="phase already"):
         Phase().apply(phased)
-    with pytest.raises(DataError, match="pose"):
-        DataSource(motion="Sine", poses=True, phase=Phase())
+
+
+def test_a_phase_follows_a_pose_and_runs_to_zero():
+    # GIVEN Sine lifted to poses, with a phase of 2 numbers
+    demos = DataSource(motion="Sine", demos=2, poses=True, phase=Phase(codes=2)).load()
+    # THEN each state is the pose then the phase, which starts at the extent and ends at 0
+    assert demos.phase_dim == 2 and demos.target.shape == (9,)
+    np.testing.assert_array_equal(demos.target[7:], 0.0)
+    for demo in demos:
+        assert demo.states.shape[1] == 9 and demo.velocities.shape[1] == 8
+        np.testing.assert_allclose(np.linalg.norm(demo.states[0, 7:]), demos.extent())
+        np.testing.assert_allclose(demo.states[-1, 7:], 0.0, atol=1e-12)
+        # The phase rate is the constant -extent / duration along the code
+        rate = -demos.extent() / demo.duration * demo.states[0, 7:] / demos.extent()
+        np.testing.assert_allclose(
+            demo.velocities[:, 6:], np.broadcast_to(rate, (len(demo.times), 2))
+        )
+    # AND a pose policy built on them lives in SE(3) with the phase after the pose
+    policy = make_policy(demos, config=SMALL)
+    assert policy.space == Phased(SE3(), 2) and policy.dim == 8
 
 
 def test_start_state_takes_the_nearest_demonstrations_phase(phased):
@@ -94,7 +113,7 @@ def test_start_state_takes_the_nearest_demonstrations_phase(phased):
 
 
 def test_the_space_compares_positions_only():
-    space = Phased(5, 3)
+    space = Phased(Euclidean(2), 3)
     assert space.position_dim == 2 and space.velocity_sizes == (2, 3)
     x = torch.tensor([[3.0, 4.0, 9.0, 9.0, 9.0]])
     assert space.errors(x, torch.zeros(5)).item() == pytest.approx(5.0)
@@ -103,6 +122,26 @@ def test_the_space_compares_positions_only():
     assert states.shape == (100, 5) and np.abs(states).max() <= 2.0
     grid = space.grid(np.zeros(5), 1.0, 9, rng)
     assert grid.shape == (9, 5) and {tuple(r) for r in grid[:, :2]} >= {(-1.0, -1.0), (1.0, 1.0)}
+
+
+def test_a_phased_pose_moves_on_so3_and_compares_the_pose_only():
+    # GIVEN a pose with a phase of 2, and a twist turning about z with a phase rate
+    space = Phased(SE3(), 2)
+    assert (space.dim, space.tangent_dim, space.position_dim) == (9, 8, 3)
+    assert space.velocity_names == ("velocity", "angular_velocity", "phase_rate")
+    x = torch.tensor([[1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 2.0, -1.0]], dtype=torch.float64)
+    v = torch.tensor([[0.5, 0.0, 0.0, 0.0, 0.0, np.pi, -1.0, 1.0]], dtype=torch.float64)
+    # WHEN it advances half a second
+    y = space.advance(x, torch.tensor([0.5], dtype=torch.float64), v)
+    # THEN the position moves, the orientation turns a quarter turn on SO(3), the phase moves
+    np.testing.assert_allclose(y[0, :3], [1.25, 0.0, 0.0])
+    np.testing.assert_allclose(y[0, 3:7], [0.0, 0.0, np.sin(np.pi / 4), np.cos(np.pi / 4)])
+    np.testing.assert_allclose(y[0, 7:], [1.5, -0.5])
+    # AND the errors are the pose's (distance, angle), blind to the phase
+    np.testing.assert_allclose(space.errors(y, x[0]), [[0.25, np.pi / 2]])
+    states = space.uniform(np.asarray(x[0]), 2.0, 100, np.random.default_rng(0))
+    assert states.shape == (100, 9)
+    np.testing.assert_allclose(np.linalg.norm(states[:, 3:7], axis=1), 1.0)
 
 
 def test_phase_step_is_euler_unhindered_and_waits_when_held():
@@ -162,7 +201,7 @@ def test_save_and_load_keep_the_phase(trained, phased, tmp_path):
     source = DataSource(motion="Sine", demos=2, phase=Phase(codes=2, seed=3))
     save_model(trained, tmp_path, extra={"data": source.record()})
     loaded, description = load_model(tmp_path)
-    assert loaded.space == trained.space == Phased(5, 3)
+    assert loaded.space == trained.space == Phased(Euclidean(2), 3)
     x = torch.randn(50, 5, dtype=trained.center.dtype)
     torch.testing.assert_close(loaded(x), trained(x))
     again = DataSource.from_record(json.loads(json.dumps(description["data"])))
@@ -213,7 +252,7 @@ def test_cli_train_evaluate_plot_export_with_a_phase(tmp_path, capsys):
     )
 
 
-@pytest.mark.parametrize("codes", ["0", "x"])
+@pytest.mark.parametrize("codes", ["-1", "65", "x"])
 def test_cli_bad_phase_codes_exit_2(codes, tmp_path, capsys):
     argv = ["--quiet", "train", "--motion", "Sine", "--phase-codes", codes]
     try:

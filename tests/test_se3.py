@@ -49,11 +49,9 @@ def untrained(pose_demos) -> PosePolicy:
 def trained(pose_demos):
     torch.manual_seed(0)
     policy = make_pose_policy(pose_demos, config=SMALL, seed=0)
-    # As snds train --se3, at the rate this short fit was written for (with the default 0.02
-    # one guarded SO(3) step of 50 rollouts still raised V after 30 halvings: noted, open).
-    config = TrainConfig(
-        steps=400, lr=1e-2, seed=0, position_noise=0.0, noise_correction=0.0, align_weight=0.0
-    )
+    # As snds train --se3 (the default recipe), shortened, at the rate this short fit was
+    # written for.
+    config = TrainConfig(steps=400, lr=1e-2, seed=0)
     fit(policy, pose_demos, no_split(pose_demos), config, progress=False)
     return policy.to(torch.float64).eval()
 
@@ -233,11 +231,13 @@ def test_cli_trains_evaluates_and_plots_a_pose_file(pose_demos, tmp_path):
     assert description["kind"] == "se3"
     # --architecture applies to pose policies as to positions.
     assert description["policy"]["hidden"] == [64, 64]
-    # Pose models train with the shape penalty by default, and without the positions' noise
-    # on the states or their warped V.
-    assert description["train"]["shape_weight"] == 0.01
-    assert description["train"]["position_noise"] == 0.0
-    assert description["policy"]["warp_layers"] == 0
+    # Pose models train as positions do: the default recipe, a warped V.
+    from snds.recipes import RECIPES
+
+    default = RECIPES["default"].train
+    assert description["train"]["shape_weight"] == default.shape_weight
+    assert description["train"]["position_noise"] == default.position_noise
+    assert description["policy"]["warp_layers"] == 4
     metrics = json.loads((out / "metrics.json").read_text())
     assert {"dtw", "angle_error_along", "final_angle_error", "angular_velocity_mse"} <= set(metrics)
     assert metrics["stability"]["rollouts"] == 5

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from snds.data.demonstrations import Demonstration, Demonstrations
+from snds.data.demonstrations import Demonstrations, DemonstrationSet
 from snds.errors import ConfigError, DataError
 
 __all__ = ["Phase", "phase_step", "start_state"]
@@ -64,9 +64,10 @@ class Phase:
         codes = rng.normal(size=(count, self.codes))
         return codes / np.linalg.norm(codes, axis=1, keepdims=True)
 
-    def apply(self, demos: Demonstrations) -> Demonstrations:
-        """The demonstrations with their phases appended: states (T, n + codes), velocities
-        their time derivatives, the target (x*, 0), ``phase_dim`` = codes.
+    def apply(self, demos: DemonstrationSet) -> DemonstrationSet:
+        """The demonstrations with their phases appended: states (T, n + codes) (poses:
+        (T, 7 + codes)), velocities their time derivatives, the target (x*, 0),
+        ``phase_dim`` = codes.
 
         Raises:
             DataError: If the demonstrations carry a phase already.
@@ -74,20 +75,11 @@ class Phase:
         if demos.phase_dim:
             raise DataError(f"{demos.name or 'the demonstrations'} carry a phase already")
         extent = demos.extent()
-        out = []
-        for demo, code in zip(demos, self.codebook(len(demos)), strict=True):
-            remaining = 1.0 - (demo.times - demo.times[0]) / demo.duration
-            phase = extent * remaining[:, None] * code
-            rate = np.broadcast_to(-extent / demo.duration * code, phase.shape)
-            out.append(
-                Demonstration(
-                    np.column_stack([demo.positions, phase]),
-                    np.column_stack([demo.velocities, rate]),
-                    demo.times,
-                )
-            )
-        target = np.append(demos.target, np.zeros(self.codes))
-        return Demonstrations(tuple(out), target, demos.name, self.codes)
+        phases = [
+            extent * (1.0 - (demo.times - demo.times[0]) / demo.duration)[:, None] * code
+            for demo, code in zip(demos, self.codebook(len(demos)), strict=True)
+        ]
+        return demos.with_phase(phases)
 
     def record(self) -> dict:
         """The JSON-ready description saved with a model (``model.json``'s ``data.phase``)."""
@@ -129,31 +121,36 @@ def phase_step(
     *,
     position_dim: int,
 ) -> np.ndarray:
-    r"""The state after a commanded step, from the positions measured after it.
+    r"""The state after a commanded step, from the state measured after it.
 
-    The positions are the measured ones; the phase advances by the policy's phase velocity
-    times :math:`h\,s`, with :math:`s = \mathrm{clip}(\langle \Delta x, h v_x \rangle /
-    \|h v_x\|^2, 0, 1)` the share of the commanded displacement :math:`h v_x` that the
-    measured one :math:`\Delta x` made. Unhindered (:math:`\Delta x = h v_x`) this is the
-    policy's own Euler step, so the guarantee applies; held (:math:`\Delta x = 0`) the phase
-    waits; where no displacement was commanded it runs on.
+    The base state (positions, or a pose) is the measured one; the phase advances by the
+    policy's phase velocity times :math:`h\,s`, with :math:`s = \mathrm{clip}(\langle \Delta x,
+    h v_x \rangle / \|h v_x\|^2, 0, 1)` the share of the commanded displacement of the
+    positions :math:`h v_x` that the measured one :math:`\Delta x` made. Unhindered
+    (:math:`\Delta x = h v_x`) this is the policy's own Euler step, so the guarantee applies;
+    held (:math:`\Delta x = 0`) the phase waits; where no displacement was commanded it runs
+    on.
 
     Arguments:
-        state: The states the step was commanded at, shape (*, n + m).
-        velocity: The velocities commanded there, shape (*, n + m).
+        state: The states the step was commanded at, shape (*, b + m): a base state of b
+            numbers whose first n are positions, then the phase.
+        velocity: The velocities commanded there, shape (*, k + m), the positions' first.
         h: The step, seconds.
-        measured: The positions measured after it, shape (*, n).
+        measured: The base states measured after it, shape (*, b).
         position_dim: n.
 
     Returns:
-        The next states, shape (*, n + m).
+        The next states, shape (*, b + m).
     """
     p = position_dim
     state = np.asarray(state, dtype=np.float64)
-    commanded = h * np.asarray(velocity, dtype=np.float64)
     measured = np.asarray(measured, dtype=np.float64)
-    made = measured - state[..., :p]
+    b = measured.shape[-1]
+    m = state.shape[-1] - b
+    commanded = h * np.asarray(velocity, dtype=np.float64)
+    made = measured[..., :p] - state[..., :p]
     size = np.einsum("...i,...i->...", commanded[..., :p], commanded[..., :p])
     ratio = np.einsum("...i,...i->...", made, commanded[..., :p]) / np.where(size > 0, size, 1.0)
     share = np.where(size > 0, np.clip(ratio, 0.0, 1.0), 1.0)
-    return np.concatenate([measured, state[..., p:] + share[..., None] * commanded[..., p:]], -1)
+    phase = state[..., b:] + share[..., None] * commanded[..., commanded.shape[-1] - m :]
+    return np.concatenate([measured, phase], -1)

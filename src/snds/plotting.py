@@ -411,8 +411,9 @@ def plot_all(
             {}
             if len(space.error_names) == 1
             else {
-                "demo_orientations": [demo.states[:, p:] for demo in demos],
-                "rollout_orientations": [r[:, p:] for r in rollouts],
+                # The quaternion after the position (a phase may follow it).
+                "demo_orientations": [demo.states[:, p : p + 4] for demo in demos],
+                "rollout_orientations": [r[:, p : p + 4] for r in rollouts],
             }
         )
         paths.append(

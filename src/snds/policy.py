@@ -476,9 +476,8 @@ class StablePolicy(Policy):
     @property
     def space(self) -> Space:
         """:math:`\\mathbb{R}^n`, or positions then a phase (:class:`~snds.spaces.Phased`)."""
-        if self.config.phase_dim:
-            return Phased(self.dim, self.config.phase_dim)
-        return Euclidean(self.dim)
+        positions = Euclidean(self.dim - self.config.phase_dim)
+        return Phased(positions, self.config.phase_dim) if self.config.phase_dim else positions
 
     def set_anchors(self, positions: Tensor) -> None:
         """Places the anchors on ``config.anchors`` of the training states (model coordinates,

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from snds.phase import Phase
 from snds.policy import PolicyConfig
 from snds.spaces import SE3, Euclidean, Phased, Space
 from snds.train import TrainConfig
@@ -24,10 +25,15 @@ class Recipe:
     Attributes:
         policy: The architecture of the policy (:class:`snds.policy.PolicyConfig`).
         train: The optimisation settings (:class:`snds.train.TrainConfig`).
+        phase: The phase appended to the demonstrations' states before training
+            (:class:`snds.phase.Phase`: which demonstration a rollout follows and how far
+            along it is, so that paths that cross or wind are retraced); None: none, the
+            policy is a field over positions (or poses) alone.
     """
 
     policy: PolicyConfig = field(default_factory=PolicyConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
+    phase: Phase | None = None
 
 
 #: The presets by name.
@@ -54,7 +60,7 @@ RECIPES: dict[str, Recipe] = {
 ARCHITECTURES: tuple[str, ...] = ("default", "compact")
 
 #: The recipe whose training settings each state space trains with by default.
-SPACE_RECIPES: dict[type[Space], str] = {Euclidean: "default", Phased: "default", SE3: "pose"}
+SPACE_RECIPES: dict[type[Space], str] = {Euclidean: "default", Phased: "default", SE3: "default"}
 
 
 def recipe_for(space: Space) -> Recipe:

@@ -47,9 +47,9 @@ from torch import Tensor
 from snds.data.demonstrations import Demonstration, Demonstrations, Normalization
 from snds.data.poses import PoseDemonstrations, angles_to
 from snds.errors import DataError
-from snds.policy import PolicyConfig, StablePolicy
+from snds.policy import DEFAULT_WARP_LAYERS, PolicyConfig, StablePolicy
 from snds.so3 import left_jacobian, left_jacobian_inverse, relative_rotvec
-from snds.spaces import SE3, Space
+from snds.spaces import SE3, Phased, Space
 
 __all__ = ["PoseConfig", "PosePolicy", "make_pose_policy", "pose_scales", "tangent_demonstrations"]
 
@@ -76,7 +76,7 @@ class PoseConfig(PolicyConfig):
     def __post_init__(self) -> None:
         super().__post_init__()
         if self.warp_layers is None:
-            object.__setattr__(self, "warp_layers", 0)
+            object.__setattr__(self, "warp_layers", DEFAULT_WARP_LAYERS)
         object.__setattr__(self, "target_position", tuple(map(float, self.target_position)))
         object.__setattr__(self, "target_orientation", tuple(map(float, self.target_orientation)))
         if len(self.target_position) != 3 or len(self.target_orientation) != 4:
@@ -112,9 +112,12 @@ class PosePolicy(StablePolicy):
     def __init__(
         self, *, dim: int, normalization: Normalization, config: PoseConfig, seed: int = 0
     ) -> None:
-        if dim != 6:
-            raise ValueError(f"a pose policy has a 6-D state, got dim={dim}")
-        super().__init__(dim=6, normalization=normalization, config=config, seed=seed)
+        if dim != 6 + config.phase_dim:
+            raise ValueError(
+                f"a pose policy has a 6-D state and its phase, got dim={dim} with phase_dim="
+                f"{config.phase_dim}"
+            )
+        super().__init__(dim=dim, normalization=normalization, config=config, seed=seed)
         # Rebuilt from the config on load, so not saved with the weights.
         self.register_buffer(
             "target_position", torch.tensor(config.target_position), persistent=False
@@ -122,30 +125,36 @@ class PosePolicy(StablePolicy):
         self.register_buffer(
             "target_orientation", torch.tensor(config.target_orientation), persistent=False
         )
+        # A phase is a length (snds.phase): it is scaled as the positions are.
         scales = [config.position_scale] * 3 + [config.rotation_scale] * 3
+        scales += [config.position_scale] * config.phase_dim
         self.register_buffer("scales", torch.tensor(scales), persistent=False)
 
     @property
     def space(self) -> Space:
-        """Poses (x, y, z, qx, qy, qz, qw) and twists: :class:`~snds.spaces.SE3`."""
-        return SE3()
+        """Poses (x, y, z, qx, qy, qz, qw) and twists: :class:`~snds.spaces.SE3`; with a
+        phase after the pose, :class:`~snds.spaces.Phased` on it."""
+        phase_dim = self.config.phase_dim
+        return Phased(SE3(), phase_dim) if phase_dim else SE3()
 
     def chart(self, x: Tensor) -> Tensor:
-        """The scaled state y, shape (*, 6), of poses x (*, 7)."""
+        """The scaled state y, shape (*, 6 + m), of poses x (*, 7 + m) (m: the phase)."""
         dtype = x.dtype
         p = x[..., :3] - self.target_position.to(dtype)
-        r = relative_rotvec(x[..., 3:], self.target_orientation.to(dtype))
-        return torch.cat([p, r], -1) / self.scales.to(dtype)
+        r = relative_rotvec(x[..., 3:7], self.target_orientation.to(dtype))
+        return torch.cat([p, r, x[..., 7:]], -1) / self.scales.to(dtype)
 
     def to_model(self, x: Tensor) -> Tensor:
-        """Poses (*, 7) to model coordinates (*, 6): the normalised :meth:`chart`."""
+        """Poses (*, 7 + m) to model coordinates (*, 6 + m): the normalised :meth:`chart`."""
         return super().to_model(self.chart(x))
 
     @property
     def target(self) -> np.ndarray:
-        """The target pose (x, y, z, qx, qy, qz, qw), shape (7,), float64."""
+        """The target pose (x, y, z, qx, qy, qz, qw), then m zeros of a phase, shape (7 + m,),
+        float64."""
         config = self.config
-        return np.array([*config.target_position, *config.target_orientation], dtype=np.float64)
+        pose = [*config.target_position, *config.target_orientation]
+        return np.array(pose + [0.0] * config.phase_dim, dtype=np.float64)
 
     def extents(self) -> np.ndarray:
         """The position extent L_p and the rotation scale L_r (radians), shape (2,)."""
@@ -164,9 +173,9 @@ class PosePolicy(StablePolicy):
         scales = self.scales.to(z.dtype)
         rates = super().velocity_to_user(z, velocity) * scales
         y = z * self.length + self.center.to(z.dtype)
-        r = y[..., 3:] * scales[3:]
-        omega = (left_jacobian(r) @ rates[..., 3:, None])[..., 0]
-        return torch.cat([rates[..., :3], omega], -1)
+        r = y[..., 3:6] * scales[3:6]
+        omega = (left_jacobian(r) @ rates[..., 3:6, None])[..., 0]
+        return torch.cat([rates[..., :3], omega, rates[..., 6:]], -1)
 
     def training_demonstrations(self, demos: PoseDemonstrations) -> Demonstrations:
         """The pose demonstrations in the scaled state y (:func:`tangent_demonstrations`)."""
@@ -194,7 +203,8 @@ def tangent_demonstrations(
     r"""The demonstrations in the policy's scaled state :math:`y` (target 0), with
     :math:`\dot y`: linear velocities by second-order differences against the times, and
     :math:`\dot r = J_l^{-1}(r)\,\omega` from the angular velocities
-    (:attr:`~snds.data.PoseDemonstration.velocities`), the exact inverse of the map the policy uses.
+    (:attr:`~snds.data.PoseDemonstration.velocities`), the exact inverse of the map the policy
+    uses; a phase is scaled as the positions are.
 
     Arguments:
         demos: Pose demonstrations ending at their target.
@@ -205,17 +215,27 @@ def tangent_demonstrations(
     out = []
     for demo in demos:
         r = relative_rotvec(torch.tensor(demo.orientations), target)
-        omega = torch.as_tensor(demo.velocities[:, 3:])
+        omega = torch.as_tensor(demo.velocities[:, 3:6])
         r_dot = (left_jacobian_inverse(r) @ omega[..., None])[..., 0]
+        velocities = demo.velocities
         y = np.concatenate(
-            [(demo.positions - demos.target_position) / position_scale, r.numpy() / rotation_scale],
+            [
+                (demo.positions - demos.target_position) / position_scale,
+                r.numpy() / rotation_scale,
+                demo.states[:, 7:] / position_scale,
+            ],
             axis=1,
         )
         y_dot = np.concatenate(
-            [demo.velocities[:, :3] / position_scale, r_dot.numpy() / rotation_scale], axis=1
+            [
+                velocities[:, :3] / position_scale,
+                r_dot.numpy() / rotation_scale,
+                velocities[:, 6:] / position_scale,
+            ],
+            axis=1,
         )
         out.append(Demonstration(y, y_dot, demo.times))
-    return Demonstrations(tuple(out), np.zeros(6), demos.name)
+    return Demonstrations(tuple(out), np.zeros(6 + demos.phase_dim), demos.name, demos.phase_dim)
 
 
 def make_pose_policy(
@@ -235,10 +255,8 @@ def make_pose_policy(
     base = asdict(config or PolicyConfig())
     for key in ("position_scale", "rotation_scale", "target_position", "target_orientation"):
         base.pop(key, None)
-    # No data kernel in the decay rate: on the synthetic pose task it doubled the angle error
-    # along the path (docs/design.md, "The decay rate on the data").
-    base["anchors"] = 0
     position_scale, rotation_scale = pose_scales(demos)
+    base["phase_dim"] = demos.phase_dim
     pose_config = PoseConfig(
         **base,
         position_scale=position_scale,
@@ -250,7 +268,7 @@ def make_pose_policy(
         demos, position_scale=position_scale, rotation_scale=rotation_scale
     )
     return PosePolicy(
-        dim=6, normalization=Normalization.fit(tangent), config=pose_config, seed=seed
+        dim=tangent.dim, normalization=Normalization.fit(tangent), config=pose_config, seed=seed
     )
 
 

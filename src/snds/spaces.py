@@ -10,9 +10,9 @@ and angle for a pose), what scale each of those has for a task of a given extent
 random states are drawn; everything else is one code path.
 
 - :class:`Euclidean`: positions :math:`x \in \mathbb{R}^n`; :math:`x + h v`.
-- :class:`Phased`: positions :math:`x \in \mathbb{R}^n` followed by a phase
-  :math:`\psi \in \mathbb{R}^m` (:mod:`snds.phase`); a step is the Euclidean one, the
-  errors are the positions' alone.
+- :class:`Phased`: the states of another space (positions or poses) followed by a phase
+  :math:`\psi \in \mathbb{R}^m` (:mod:`snds.phase`); a step is the base space's, and the
+  phase moves along its rate; the errors are the base space's alone.
 - :class:`SE3`: poses :math:`(p, q)` of a position and a unit quaternion (x, y, z, w), 7
   numbers; velocities are twists :math:`(v, \omega)` with the angular velocity in the world
   frame; a step is :math:`p + h v`, :math:`\exp(h \omega)\, q` (so orientations stay on
@@ -173,61 +173,103 @@ class Euclidean(Space):
 
 
 @dataclass(frozen=True)
-class Phased(Euclidean):
-    r"""Positions in :math:`\mathbb{R}^p` followed by a phase of m numbers that runs to 0
-    (:mod:`snds.phase`): a state has dim = p + m numbers, a step is :math:`x + h v`.
+class Phased(Space):
+    r"""The states of another space followed by a phase of m numbers that runs to 0
+    (:mod:`snds.phase`): positions :math:`x \in \mathbb{R}^p` or poses, then
+    :math:`\psi \in \mathbb{R}^m`. A step moves the base state as its space does and the
+    phase along its rate, :math:`\psi + h \dot\psi`.
 
-    The errors, their scales and so every metric and tolerance are the positions'; random
+    The errors, their scales and so every metric and tolerance are the base space's; random
     states draw the phase uniform in the same cube as the positions' offsets, which holds
-    every phase a demonstration starts with (|psi| <= the extent).
+    every phase a demonstration starts with (:math:`|\psi| \le` the extent).
 
     Attributes:
-        dim: p + m.
+        base: The space of the states without their phase.
         phase_dim: m.
     """
 
-    dim: int
+    base: Space
     phase_dim: int
-    velocity_names: ClassVar[tuple[str, ...]] = ("velocity", "phase_rate")
-    velocity_units: ClassVar[tuple[int, ...]] = (0, 0)
+
+    @property
+    def dim(self) -> int:  # type: ignore[override]
+        return self.base.dim + self.phase_dim
+
+    @property
+    def tangent_dim(self) -> int:  # type: ignore[override]
+        return self.base.tangent_dim + self.phase_dim
 
     @property
     def position_dim(self) -> int:  # type: ignore[override]
-        return self.dim - self.phase_dim
+        return self.base.position_dim
+
+    @property
+    def error_names(self) -> tuple[str, ...]:  # type: ignore[override]
+        return self.base.error_names
+
+    @property
+    def velocity_names(self) -> tuple[str, ...]:  # type: ignore[override]
+        return (*self.base.velocity_names, "phase_rate")
 
     @property
     def velocity_sizes(self) -> tuple[int, ...]:  # type: ignore[override]
-        return (self.position_dim, self.phase_dim)
+        return (*self.base.velocity_sizes, self.phase_dim)
+
+    @property
+    def velocity_units(self) -> tuple[int, ...]:  # type: ignore[override]
+        # A phase is a length: it moves in the positions' unit per second.
+        return (*self.base.velocity_units, 0)
 
     @property
     def state_text(self) -> str:  # type: ignore[override]
-        return (
-            f"position ({self.position_dim} numbers, user units), then phase "
-            f"({self.phase_dim} numbers, user units)"
-        )
+        return f"{self.base.state_text}, then phase ({self.phase_dim} numbers, position units)"
 
     @property
     def velocity_text(self) -> str:  # type: ignore[override]
         return (
-            f"velocity ({self.position_dim} numbers, user units per second), then phase rate "
-            f"({self.phase_dim} numbers)"
+            f"{self.base.velocity_text}, then phase rate ({self.phase_dim} numbers, position "
+            "units per second)"
         )
 
+    def split(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        """The base states and the phases of states (*, dim): (*, base.dim), (*, m)."""
+        return x[..., : self.base.dim], x[..., self.base.dim :]
+
+    def advance(self, x: Tensor, h: Tensor, velocity: Tensor) -> Tensor:
+        state, phase = self.split(x)
+        rate = velocity[..., self.base.tangent_dim :]
+        moved = self.base.advance(state, h, velocity[..., : self.base.tangent_dim])
+        return torch.cat([moved, phase + h.unsqueeze(-1) * rate], -1)
+
     def errors(self, x: Tensor, y: Tensor) -> Tensor:
-        p = self.position_dim
-        return (x[..., :p] - y[..., :p]).norm(dim=-1, keepdim=True)
+        return self.base.errors(x[..., : self.base.dim], y[..., : self.base.dim])
+
+    def error_scales(self, extent: float) -> np.ndarray:
+        return self.base.error_scales(extent)
 
     def tangent_scales(self, extent: float) -> np.ndarray:
-        return np.full(self.dim, extent)
+        return np.append(self.base.tangent_scales(extent), np.full(self.phase_dim, extent))
+
+    def _with_phases(
+        self, states: np.ndarray, center: np.ndarray, half_width: float, rng: np.random.Generator
+    ) -> np.ndarray:
+        offsets = rng.uniform(-half_width, half_width, (len(states), self.phase_dim))
+        return np.concatenate([states, center[self.base.dim :] + offsets], axis=1)
+
+    def uniform(
+        self, center: np.ndarray, half_width: float, count: int, rng: np.random.Generator
+    ) -> np.ndarray:
+        center = np.asarray(center, dtype=np.float64)
+        states = self.base.uniform(center[: self.base.dim], half_width, count, rng)
+        return self._with_phases(states, center, half_width, rng)
 
     def grid(
         self, center: np.ndarray, half_width: float, count: int, rng: np.random.Generator
     ) -> np.ndarray:
-        """Positions on the grid over their cube, each with a phase uniform in its cube."""
-        p = self.position_dim
-        positions = _grid(np.asarray(center[:p], dtype=np.float64), half_width, count)
-        phases = center[p:] + rng.uniform(-half_width, half_width, (len(positions), self.phase_dim))
-        return np.concatenate([positions, phases], axis=1)
+        """The base space's grid, each state with a phase uniform in its cube."""
+        center = np.asarray(center, dtype=np.float64)
+        states = self.base.grid(center[: self.base.dim], half_width, count, rng)
+        return self._with_phases(states, center, half_width, rng)
 
 
 @dataclass(frozen=True)

@@ -156,16 +156,18 @@ def register(commands: argparse._SubParsersAction) -> None:
         "--phase-codes",
         type=int,
         metavar="M",
-        help="append a phase of M numbers to the state, a code per demonstration, so that "
-        "rollouts follow demonstrations that cross (arm recordings; see docs/data.md); "
-        "a start then needs a phase",
+        default=DEFAULT.phase.codes if DEFAULT.phase else 0,
+        help="numbers M of the phase appended to the state, a code per demonstration, so "
+        "that rollouts retrace demonstrations that cross or wind (default "
+        f"{DEFAULT.phase.codes if DEFAULT.phase else 0}; 0: none, a field of the positions "
+        "alone; see docs/data.md); a start then needs a phase",
     )
     parser.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
     check = _check_config(args)
-    phase = None if args.phase_codes is None else Phase(codes=args.phase_codes)
+    phase = Phase(codes=args.phase_codes) if args.phase_codes else None
     source = _data_source(args, poses=args.se3, seed=args.seed, phase=phase)
     demos = source.load()
     name = demos.name or source.name

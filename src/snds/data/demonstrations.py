@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -98,6 +99,11 @@ class DemonstrationSet:
 
     def select(self, indices: list[int] | tuple[int, ...] | range) -> DemonstrationSet:
         """The demonstrations at ``indices``, in that order, with the same target."""
+        raise NotImplementedError
+
+    def with_phase(self, phases: Sequence[np.ndarray]) -> DemonstrationSet:
+        """The same demonstrations with a phase of shape (T_d, m) appended to each state
+        (:mod:`snds.phase`)."""
         raise NotImplementedError
 
     def first(self, k: int) -> DemonstrationSet:
@@ -210,6 +216,30 @@ class Demonstrations(DemonstrationSet):
         return Demonstrations(
             tuple(self.demos[i] for i in indices), self.target, self.name, self.phase_dim
         )
+
+    def with_phase(self, phases: Sequence[np.ndarray]) -> Demonstrations:
+        """The same demonstrations with a phase appended to each state, shapes (T_d, m), and
+        its rate to each velocity (second-order differences against the times); the target
+        then ends in m zeros (:mod:`snds.phase`).
+
+        Raises:
+            DataError: If the demonstrations carry a phase already.
+        """
+        if self.phase_dim:
+            raise DataError(f"{self.name or 'the demonstrations'} carry a phase already")
+        out = []
+        for demo, phase in zip(self.demos, phases, strict=True):
+            edge = 2 if len(demo.times) > 2 else 1
+            rate = np.gradient(phase, demo.times, axis=0, edge_order=edge)
+            out.append(
+                Demonstration(
+                    np.column_stack([demo.positions, phase]),
+                    np.column_stack([demo.velocities, rate]),
+                    demo.times,
+                )
+            )
+        m = np.shape(phases[0])[1]
+        return Demonstrations(tuple(out), np.append(self.target, np.zeros(m)), self.name, m)
 
 
 @dataclass(frozen=True)

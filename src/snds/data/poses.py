@@ -22,7 +22,7 @@ File layouts (one row per sample, rows of one demonstration together and in time
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cached_property
 from pathlib import Path
 
@@ -106,11 +106,13 @@ class PoseDemonstration:
         positions: Positions along the motion, shape (T, 3).
         orientations: Unit quaternions (x, y, z, w), shape (T, 4); signs made continuous.
         times: Strictly increasing sample times in seconds, shape (T,).
+        phase: A phase appended to each state (:mod:`snds.phase`), shape (T, m); None: none.
     """
 
     positions: np.ndarray
     orientations: np.ndarray
     times: np.ndarray
+    phase: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         # Demonstration validates positions and times (shape, finiteness, monotonic times).
@@ -122,6 +124,11 @@ class PoseDemonstration:
             raise DataError(
                 f"orientations have {len(orientations)} samples, positions {len(check.positions)}"
             )
+        if self.phase is not None:
+            phase = np.asarray(self.phase, dtype=np.float64)
+            if phase.ndim != 2 or len(phase) != len(check.positions):
+                raise DataError(f"a phase has shape (T, m) with T={len(check.positions)}")
+            object.__setattr__(self, "phase", phase)
         object.__setattr__(self, "positions", check.positions)
         object.__setattr__(self, "orientations", orientations)
         object.__setattr__(self, "times", check.times)
@@ -133,17 +140,25 @@ class PoseDemonstration:
 
     @property
     def states(self) -> np.ndarray:
-        """The poses as rows (x, y, z, qx, qy, qz, qw), shape (T, 7)."""
-        return np.concatenate([self.positions, self.orientations], axis=1)
+        """The poses as rows (x, y, z, qx, qy, qz, qw), then the phase if any, shape
+        (T, 7 + m)."""
+        return np.concatenate([self.positions, self.orientations, *self._phase()], axis=1)
+
+    def _phase(self) -> list[np.ndarray]:
+        return [] if self.phase is None else [self.phase]
 
     @cached_property
     def velocities(self) -> np.ndarray:
-        """The demonstrated twists (linear velocity, world-frame angular velocity), shape
-        (T, 6): second-order differences of the positions against the times, and
-        :func:`angular_velocities`."""
+        """The demonstrated twists (linear velocity, world-frame angular velocity), then the
+        phase's rate if any, shape (T, 6 + m): second-order differences of the positions (and
+        the phase) against the times, and :func:`angular_velocities`."""
         edge = 2 if len(self.times) > 2 else 1
-        linear = np.gradient(self.positions, self.times, axis=0, edge_order=edge)
-        return np.concatenate([linear, angular_velocities(self.orientations, self.times)], axis=1)
+        linear, *rate = (
+            np.gradient(part, self.times, axis=0, edge_order=edge)
+            for part in [self.positions, *self._phase()]
+        )
+        angular = angular_velocities(self.orientations, self.times)
+        return np.concatenate([linear, angular, *rate], axis=1)
 
 
 @dataclass(frozen=True)
@@ -185,6 +200,20 @@ class PoseDemonstrations(DemonstrationSet):
             self.name,
         )
 
+    @property
+    def phase_dim(self) -> int:
+        """How many numbers of a phase each state carries after its pose (0: none)."""
+        phase = self.demos[0].phase
+        return 0 if phase is None else phase.shape[1]
+
+    def with_phase(self, phases: Sequence[np.ndarray]) -> PoseDemonstrations:
+        """The same demonstrations with a phase appended to each, shapes (T_d, m); the
+        target state then ends in m zeros (:mod:`snds.phase`)."""
+        demos = tuple(
+            replace(demo, phase=phase) for demo, phase in zip(self.demos, phases, strict=True)
+        )
+        return PoseDemonstrations(demos, self.target_position, self.target_orientation, self.name)
+
     def angle_extent(self) -> float:
         """Largest angle (radians) of a demonstrated orientation from the target orientation."""
         return float(
@@ -193,8 +222,11 @@ class PoseDemonstrations(DemonstrationSet):
 
     @property
     def target(self) -> np.ndarray:
-        """The target pose as one row (x, y, z, qx, qy, qz, qw), shape (7,)."""
-        return np.concatenate([self.target_position, self.target_orientation])
+        """The target state as one row (x, y, z, qx, qy, qz, qw), then a phase's m zeros,
+        shape (7 + m,)."""
+        return np.concatenate(
+            [self.target_position, self.target_orientation, np.zeros(self.phase_dim)]
+        )
 
 
 def angles_to(orientations: np.ndarray, target: np.ndarray) -> np.ndarray:

@@ -60,8 +60,8 @@ class DataSource:
         poses: Whether the task is in SE(3). Automatic for a pose file; position data are
             then lifted with synthetic orientations.
         orientation_seed: Seed of the synthetic orientations.
-        phase: A phase appended to the positions (:class:`~snds.phase.Phase`); None: none.
-            Position tasks only.
+        phase: A phase appended to the states, positions or poses
+            (:class:`~snds.phase.Phase`); None: none.
         rate: Sampling rate (Hz) of a file without time stamps; see
             :class:`~snds.data.options.ReadOptions` for this and the fields below.
         quaternion_order: ``"xyzw"`` or ``"wxyz"``, for quaternions in unnamed columns.
@@ -109,8 +109,6 @@ class DataSource:
             if holds_poses(self.file, options):
                 object.__setattr__(self, "poses", True)
         check_gap_mode(self.gaps)
-        if self.phase is not None and self.poses:
-            raise DataError("a phase is for position tasks; a pose task cannot take one")
         if isinstance(self.demos, list):
             object.__setattr__(self, "demos", tuple(self.demos))
         if isinstance(self.demos, int) and self.demos < 1:
@@ -143,6 +141,11 @@ class DataSource:
         Raises:
             DataError: If the motion or file cannot be used (the message names it).
         """
+        demos = self._states()
+        return demos if self.phase is None else self.phase.apply(demos)
+
+    def _states(self) -> Demonstrations | PoseDemonstrations:
+        """The demonstrations without a phase."""
         if self.file is None:
             positions = self._lasa()
         else:
@@ -156,7 +159,7 @@ class DataSource:
             if isinstance(positions, PoseDemonstrations):
                 return positions
         if not self.poses:
-            return positions if self.phase is None else self.phase.apply(positions)
+            return positions
         return with_synthetic_orientations(positions, seed=self.orientation_seed)
 
     def record(self) -> dict:

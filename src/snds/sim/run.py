@@ -471,13 +471,60 @@ class PoseCommander:
         return distance <= self.config.tolerance and angle <= self.config.angle_tolerance
 
 
+class PhasedPoseCommander(PoseCommander):
+    """A pose policy with a phase in its state: it drives position and orientation, and keeps
+    the phase as :class:`PhasedCommander` does (:func:`snds.phase.phase_step`). A start is a
+    whole state: position, unit quaternion and phase.
+
+    Arguments:
+        policy: The phased pose policy (float64).
+        placement: Where the task lies.
+        config: The run's settings; obstacles are refused.
+    """
+
+    def __init__(self, policy: PosePolicy, placement: PosePlacement, config: SimConfig) -> None:
+        if config.obstacles is not None:
+            raise SimulationError("obstacles cannot be simulated with a model that has a phase")
+        super().__init__(policy, placement, config)
+        self.state: np.ndarray | None = None
+        self.commanded: np.ndarray | None = None
+
+    def start_pose(self, start: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The world pose of a start state (7 + m,); its phase starts the commander's."""
+        start = np.asarray(start, dtype=float)
+        if start.shape != self.policy.target.shape:
+            raise SimulationError(
+                f"the start has shape {start.shape}, the model's states (pose and phase) "
+                f"{self.policy.target.shape}"
+            )
+        pose = super().start_pose(start[:7])
+        self.state, self.commanded = start.copy(), None
+        return pose
+
+    def twist(self, pose: EndEffector) -> np.ndarray:
+        """The policy's twist at the measured pose and the kept phase, in the world."""
+        if self.state is None:
+            raise SimulationError("a phased run needs its start (start_pose) before a twist")
+        position, orientation = self.pose_placement.to_task(pose.position, pose.orientation)
+        measured = np.concatenate([position, orientation])
+        if self.commanded is None:
+            state = np.concatenate([measured, self.state[7:]])
+        else:
+            dt = 1.0 / self.config.control_rate
+            state = phase_step(self.state, self.commanded, dt, measured, position_dim=3)
+        with torch.no_grad():
+            x = torch.as_tensor(state)[None]
+            twist = safe_velocity(self.policy, x, 1.0 / self.config.control_rate)[0][0].numpy()
+        self.state, self.commanded = state, twist
+        return self.pose_placement.twist_to_world(twist[:6])
+
+
 #: The commander of each state space: a position policy drives the position and holds the
 #: orientation; a pose policy drives both.
-COMMANDERS: dict[type[Space], Any] = {
-    Euclidean: PositionCommander,
-    Phased: PhasedCommander,
-    SE3: PoseCommander,
-}
+COMMANDERS: dict[type[Space], Any] = {Euclidean: PositionCommander, SE3: PoseCommander}
+
+#: The commander of each base space with a phase after it (:class:`~snds.spaces.Phased`).
+PHASED_COMMANDERS: dict[type[Space], Any] = {Euclidean: PhasedCommander, SE3: PhasedPoseCommander}
 
 
 def make_commander(
@@ -491,7 +538,12 @@ def make_commander(
         rest_orientation: The end effector's orientation at the rest pose, quaternion (4,).
         config: The run's settings.
     """
-    return COMMANDERS[type(policy.space)].build(policy, robot, rest_orientation, config)
+    space = policy.space
+    if isinstance(space, Phased):
+        commander = PHASED_COMMANDERS[type(space.base)]
+    else:
+        commander = COMMANDERS[type(space)]
+    return commander.build(policy, robot, rest_orientation, config)
 
 
 @dataclass(frozen=True)
