@@ -278,18 +278,19 @@ def check_stability(
 ) -> StabilityReport:
     """Rolls out from random starts and checks the decrease condition on a dense sample.
 
-    One check for every state space (the policy's :attr:`~snds.policy.Policy.space`):
-    rollouts start in a box of half-width ``box_factor`` x the extent (the largest distance
-    of a demonstrated position from the target) around the target, with orientations uniform
-    over all of SO(3) for poses, and run for ``horizon_factor`` x the longest
-    demonstration's duration at most (until they arrive), adaptive Euler steps of at least the demonstrations' mean time
-    step along the space's :meth:`~snds.spaces.Space.advance`, guarded (see
-    :func:`snds.rollout.guarded_step`) for a policy with a Lyapunov function; the report
-    says in how many rollouts the guard had to shorten a step, and the largest step that is
-    safe along the rollouts. A rollout has converged if it ends within ``tolerance_factor``
-    x each error scale of the target (the extent; pi radians for an angle): the robot must
-    get there in useful time, not only asymptotically. Rollouts of a policy with a Lyapunov
-    function stop early once they are provably settled (see :func:`_roll_out_and_settle`).
+    One check for every state space (the policy's :attr:`~snds.policy.Policy.space`): rollouts
+    start in a box of half-width ``box_factor`` x the extent (the largest distance of a
+    demonstrated position from the target) around the target, with orientations uniform over all
+    of SO(3) for poses, and run until they arrive, for ``horizon_factor`` x the longest
+    demonstration's duration at most, adaptive Euler steps of at least the demonstrations' mean
+    time step along the space's :meth:`~snds.spaces.Space.advance`, guarded (see
+    :func:`snds.rollout.guarded_step`) for a policy with a Lyapunov function; the report gives
+    their times to arrive, says in how many rollouts the guard had to shorten a step, and the
+    largest step that is safe along the rollouts. A rollout has converged if it ends within
+    ``tolerance_factor`` x each error scale of the target (the extent; pi radians for an angle):
+    the robot must get there in useful time, not only asymptotically. Rollouts of a policy with
+    a Lyapunov function stop early once they are provably settled (see
+    :func:`_roll_out_and_settle`).
     Everything runs in float64.
 
     Arguments:

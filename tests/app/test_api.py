@@ -73,7 +73,17 @@ def test_no_path_outside_the_static_files_is_served(client, path: str) -> None:
 def test_a_request_for_another_host_name_is_refused(client) -> None:
     # A page elsewhere that rebinds its DNS name to 127.0.0.1 must not reach the API.
     answer = client.get("/api/health", headers={"host": "evil.example"})
-    assert (answer.status_code, answer.text) == (400, "Invalid host header")
+    # The JSON of every refusal, as docs/bad-input.md promises.
+    assert (answer.status_code, answer.json()) == (
+        400,
+        {
+            "error": "host 'evil.example' is not served here (only 127.0.0.1, ::1, [::1], "
+            "localhost); open the page at its address"
+        },
+    )
+    # The loopback's names, with a port, are served.
+    for host in ("localhost:8765", "127.0.0.1", "[::1]:8765"):
+        assert client.get("/api/health", headers={"host": host}).status_code == 200
 
 
 # --- Training, streaming, results -------------------------------------------------------------
@@ -400,7 +410,7 @@ BAD_INPUT = [
         TRAIN,
         _json('{"strokes": [[[0, 0, 0], [1e400, 1, 0.1]]]}'),
         422,
-        "stroke 0, point 1: non-finite value inf",
+        "the number 1e400 is beyond a float's range (1.8e308)",
     ),
     (
         "coordinate beyond the limit",
@@ -443,6 +453,50 @@ BAD_INPUT = [
         {"json": {"strokes": [_stroke()], "settings": {"lr": 1}}},
         422,
         "unknown setting 'lr' (known: steps, seed, rollouts, samples)",
+    ),
+    (
+        "a 400-digit setting",
+        TRAIN,
+        _json('{"strokes": [], "settings": {"steps": ' + "9" * 400 + "}}"),
+        422,
+        "a number of 400 characters (999999999999... (400 characters)); at most 32 are read",
+    ),
+    (
+        "a coordinate of 309 digits (beyond a float)",
+        TRAIN,
+        _json('{"strokes": [[[0, 0, 0], [1' + "0" * 308 + ", 1, 1]]]}"),
+        422,
+        "a number of 309 characters (100000000000... (309 characters)); at most 32 are read",
+    ),
+    (
+        "a coordinate of 5000 digits (beyond Python's int parsing)",
+        TRAIN,
+        _json('{"strokes": [[[0, 0, 0], [' + "7" * 5000 + ", 1, 1]]]}"),
+        422,
+        "a number of 5000 characters (777777777777... (5000 characters)); at most 32 are read",
+    ),
+    (
+        "a target far from the strokes' ends",
+        TRAIN,
+        {"json": {"strokes": [_stroke()], "target": [999999, 999999]}},
+        422,
+        "stroke 0 ends 1.414e+06 from the target, 100% of the strokes' extent 1.414e+06; ends "
+        "must lie within 25% of it (as for snds train): move the target (the star) to where the "
+        "strokes end, or end the strokes at it",
+    ),
+    (
+        "a rollout start of 400 digits",
+        "/api/jobs/{job}/rollout",
+        _json('{"start": [' + "1" * 400 + ", 0]}"),
+        422,
+        "a number of 400 characters (111111111111... (400 characters)); at most 32 are read",
+    ),
+    (
+        "field bounds beyond a float",
+        "/api/jobs/{job}/field",
+        _json('{"bounds": [0, 1e400, 0, 1]}'),
+        422,
+        "the number 1e400 is beyond a float's range (1.8e308)",
     ),
     (
         "setting out of range",

@@ -467,6 +467,10 @@ def create_app(
     async def index(request: Request) -> Response:
         return FileResponse(STATIC / "index.html")
 
+    async def favicon(request: Request) -> Response:
+        # Browsers ask for /favicon.ico whatever the page links; the page's icon is an SVG.
+        return FileResponse(STATIC / "favicon.svg", media_type="image/svg+xml")
+
     async def health(request: Request) -> Response:
         return _json(
             {"ok": True, "version": __version__, "running": len(jobs_of(request).running())}
@@ -640,6 +644,7 @@ def create_app(
     job_path = "/api/jobs/{job:str}"
     routes = [
         Route("/", index),
+        Route("/favicon.ico", favicon),
         Route("/api/health", health),
         Route("/api/limits", get_limits),
         Route("/api/train", train, methods=["POST"]),

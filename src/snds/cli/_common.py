@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import zipfile
 from pathlib import Path
 
 import torch
@@ -16,7 +17,7 @@ from snds.data import (
     split_demos,
     split_samples,
 )
-from snds.errors import ConfigError, SNDSError
+from snds.errors import ConfigError, ModelFileError, SNDSError
 from snds.models import load_model
 from snds.obstacles import Scene, load_scene, parse_obstacle, parse_workspace
 from snds.phase import Phase
@@ -84,6 +85,7 @@ def _check_config(args: argparse.Namespace) -> CheckConfig:
 def _model_and_data(args: argparse.Namespace) -> tuple[Policy, dict, Demonstrations]:
     """A saved model, its record, and the demonstrations it was trained on (or those that
     ``--motion`` / ``--data`` name), in the model's space: poses for a pose model."""
+    _refuse_zip(Path(args.model))
     policy, description = load_model(args.model)
     recorded = description.get("data") or {}
     poses = isinstance(policy.space, SE3)
@@ -102,6 +104,20 @@ def _model_and_data(args: argparse.Namespace) -> tuple[Policy, dict, Demonstrati
             f"the data has dimension {width}, the model in {args.model} {policy.space.dim}"
         )
     return policy, description, demos
+
+
+def _refuse_zip(path: Path) -> None:
+    """A zipped model folder (the page's Model .zip) is refused with the command that unzips
+    it: the commands read and write the folder's files in place."""
+    if not (path.is_file() and zipfile.is_zipfile(path)):
+        return
+    with zipfile.ZipFile(path) as archive:
+        folders = {Path(name).parts[0] for name in archive.namelist() if len(Path(name).parts) > 1}
+    folder = next(iter(folders)) if len(folders) == 1 else "FOLDER"
+    raise ModelFileError(
+        f"{path}: a zip archive, not a model folder; unzip it first: unzip {path} -d "
+        f"{path.parent} and pass {path.parent / folder}"
+    )
 
 
 def _refuse_obstacles(policy: Policy, command: str) -> None:

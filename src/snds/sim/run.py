@@ -800,7 +800,7 @@ def unpushed_path(policy: Policy, start: np.ndarray, *, dt: float, steps: int) -
     space = policy.space
     target = space.positions(policy.target)
     close = 1e-4 * float(policy.extents()[0])
-    x = torch.as_tensor(np.asarray(start, dtype=np.float64))[None]
+    x = torch.tensor(np.asarray(start, dtype=np.float64))[None]
     states = [x[0].numpy().copy()]
     step = torch.full((1,), dt, dtype=torch.float64)
     for _ in range(steps):
