@@ -364,7 +364,7 @@ def rollouts_until_arrival(
     duration = demos.max_duration()
     piece = max(1, int(1.5 * duration / dt))
     cap = int(CheckConfig().horizon_factor * duration / dt)
-    target = torch.as_tensor(np.asarray(demos.target, dtype=np.float64))
+    target = torch.tensor(np.asarray(demos.target, dtype=np.float64))
     scales = torch.as_tensor(space.error_scales(demos.extent()))
     pieces = [rollout_numpy(policy, starts, dt=dt, steps=piece)]
     while True:

@@ -478,23 +478,22 @@ def _roll_out_and_settle(
     r"""Adaptive guarded Euler rollouts that stop integrating each start once it has settled.
 
     Each rollout takes Euler steps along the policy's space (:meth:`~snds.spaces.Space.advance`)
-    whose length follows the local error: the estimate
-    :math:`e = \tfrac{h}{2} |\pi(x_{k+1}) - \pi(x_k)|` (the leading term of Euler's local
-    error, from the velocity the next step needs anyway; each component in its scale,
-    :meth:`~snds.spaces.Space.tangent_scales`) is kept below ``step_tolerance_factor``
-    extents by rejecting a step that exceeds it and by growing or shrinking the next one
-    as :math:`h \sqrt{\text{tol} / e}`, between the data's step ``dt`` (always accepted, so
-    the check is never slower than fixed steps of dt) and horizon / 50. Where the field
-    is smooth (far out, and on the final approach) steps grow far beyond the data's period; in
-    the demonstrations' bends they stay near it; no step moves a state by more than 5% of
-    its distance to the target, unless it is no longer than dt. A policy with a Lyapunov
-    function also takes the guarded step (:func:`snds.rollout.guarded_step`, Armijo's
-    condition on V), so V falls at every accepted step. The sublevel set {V < c} of
-    :func:`settle_level` lies inside the model-coordinate ball whose image is within half of
-    every tolerance (:meth:`~snds.policy.Policy.model_scale`), and guarded steps never leave
-    it: a start whose state enters it is settled and no longer integrated, so the check costs
-    the time rollouts take to arrive. A policy without a Lyapunov function integrates to the
-    horizon.
+    whose length follows the local error: the estimate :math:`e = \tfrac{h}{2} |\pi(x_{k+1}) -
+    \pi(x_k)|` (the leading term of Euler's local error, from the velocity the next step needs
+    anyway; each component in its scale, :meth:`~snds.spaces.Space.tangent_scales`) is kept
+    below ``step_tolerance_factor`` extents by rejecting a step that exceeds it and by growing
+    or shrinking the next one as :math:`h \sqrt{\text{tol} / e}`, between the data's step ``dt``
+    (always accepted, so the check is never slower than fixed steps of dt; horizon / 500 for
+    data sampled coarser) and horizon / 50. Where the field is smooth (far out, and on the final
+    approach) steps grow far beyond the data's period; in the demonstrations' bends they stay
+    near it; no step moves a state by more than 5% of its distance to the target, unless it is
+    no longer than dt. A policy with a Lyapunov function also takes the guarded step
+    (:func:`snds.rollout.guarded_step`, Armijo's condition on V), so V falls at every accepted
+    step. The sublevel set {V < c} of :func:`settle_level` lies inside the model-coordinate ball
+    whose image is within half of every tolerance (:meth:`~snds.policy.Policy.model_scale`), and
+    guarded steps never leave it: a start whose state enters it is settled and no longer
+    integrated, so the check costs the time rollouts take to arrive. A policy without a Lyapunov
+    function integrates to the horizon.
 
     A rollout takes at most as many accepted steps as fixed steps of the shortest standard
     step (the smaller of dt and horizon / 50) would take to the horizon, and at least
@@ -513,12 +512,15 @@ def _roll_out_and_settle(
     tangent_scales = torch.as_tensor(space.tangent_scales(extent), **like)
     tolerance = config.tolerance_factor
     step_tolerance, max_step = config.step_tolerance_factor, horizon / 50
+    # The shortest standard step: the data's, unless the data are sampled coarser than
+    # horizon / 500 (strokes of a few points), whose Euler steps would misplace arrival.
+    min_step = min(dt, horizon / 500)
 
     def errors(states: torch.Tensor) -> torch.Tensor:
         return space.errors(states, target) / error_scales
 
     time = torch.zeros(count, **like)
-    h = torch.full_like(time, dt)
+    h = torch.full_like(time, min_step)
     # Time since which each rollout has been within the tolerance (NaN while outside).
     arrival = torch.zeros_like(time)
     active = torch.arange(count, device=x.device)
@@ -539,7 +541,7 @@ def _roll_out_and_settle(
     arrival[(errors(x) > tolerance).any(dim=-1)] = float("nan")
     # The budget of fixed steps at dt: steps the guard shortens still count as steps, so a
     # field so stiff that the guard shrinks every step ends after as many steps as before.
-    budget = max(int(np.ceil(horizon / min(dt, max_step))), config.min_step_budget)
+    budget = max(int(np.ceil(horizon / min_step)), config.min_step_budget)
     taken = torch.zeros(count, dtype=torch.long, device=x.device)
     steps = 0
     while len(active):
@@ -554,11 +556,12 @@ def _roll_out_and_settle(
                 bad = ~((after <= before - required) & (after < before)) & (before > 0)
                 shortened[active[bad]] = True
         # No step moves a state by more than 5% of its distance to the target (or takes
-        # longer than dt): relative accuracy on the final approach, and arrival times resolved
-        # to a twentieth of the time left. The last step ends exactly at the horizon.
+        # longer than dt, or than horizon / 50 for data sampled coarser than that): relative
+        # accuracy on the final approach, and arrival times resolved to a twentieth of the
+        # time left. The last step ends exactly at the horizon.
         distance = errors(xa).max(dim=-1).values
         reach = 0.05 * distance / (va / tangent_scales).norm(dim=-1)
-        ha = torch.minimum(ha, reach.nan_to_num(nan=dt).clamp_min(dt))
+        ha = torch.minimum(ha, reach.nan_to_num(nan=dt).clamp_min(min_step))
         ha = torch.minimum(ha, horizon - time[active])
         candidate = space.advance(xa, ha, va)
         if value is not None:
@@ -586,11 +589,11 @@ def _roll_out_and_settle(
         error = 0.5 * ha * ((v_new - va) / tangent_scales).norm(dim=-1)
         # A step no longer than the data's is always accepted: at worst the check integrates
         # as plain (guarded) Euler at dt, never slower.
-        accept = (error <= step_tolerance) | (ha <= dt)
+        accept = (error <= step_tolerance) | (ha <= min_step)
         # A non-finite error (a diverging field without V) shrinks the step, to dt at least.
         grow = (0.9 * (step_tolerance / error).sqrt()).nan_to_num(nan=0.2).clamp(0.2, 4.0)
         proposed = torch.where(accept, ha * grow, ha * grow.clamp_max(0.9))
-        h[active] = proposed.clamp(min(dt, max_step), max_step)
+        h[active] = proposed.clamp(min_step, max_step)
         done = active[accept]
         x[done], velocity[done] = candidate[accept], v_new[accept]
         time[done] = time[done] + ha[accept]

@@ -5,7 +5,10 @@ from __future__ import annotations
 
 import io
 import os
+import re
+import shutil
 import signal
+import subprocess
 import time
 import zipfile
 from pathlib import Path
@@ -637,3 +640,41 @@ def test_bad_input(client, trained, path: str, request_: dict, status: int, reas
     assert (answer.status_code, answer.json()) == (status, {"error": reason})
     # Refused before any work: no job was started.
     assert {j.id for j in client.app.state.jobs.running()} == running
+
+
+def _readme_example() -> tuple[str, str]:
+    """The jq program and the request body template of the README's curl example."""
+    readme = (Path(__file__).resolve().parents[2] / "README.md").read_text()
+    program = re.search(r"strokes=\$\(jq -nc '(.*?)'\)", readme, re.DOTALL)
+    body = re.search(r'-d "(\{\\"strokes\\": \$strokes.*?\})" \| jq', readme)
+    assert program and body, "the README's curl example changed shape: update this test"
+    return program.group(1), body.group(1).replace('\\"', '"')
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(shutil.which("jq") is None, reason="the README's example needs jq")
+def test_the_readme_curl_example_trains_a_model_whose_check_passes(client, helpers) -> None:
+    # GIVEN exactly the README's strokes (its jq program) and its request body
+    program, template = _readme_example()
+    strokes = subprocess.run(
+        ["jq", "-nc", program], check=True, capture_output=True, text=True
+    ).stdout.strip()
+    body = template.replace("$strokes", strokes)
+    # WHEN they are trained with the page's defaults (snds train's) and the README's settings
+    answer = client.post("/api/train", content=body, headers={"content-type": "application/json"})
+    assert answer.status_code == 202
+    status = helpers.wait_for(client, answer.json()["id"], {"done", "error"}, timeout=600)
+    # THEN the stability check passes: every start arrives, V decreases everywhere checked,
+    # and the rollouts from the strokes' starts retrace them
+    assert status["state"] == "done", status.get("error")
+    metrics = status["metrics"]
+    stability = metrics["stability"]
+    assert stability["converged_fraction"] == 1.0 and stability["decrease_violations"] == 0
+    assert stability["still_moving"] == 0 and stability["time_to_arrive_max"] < stability["horizon"]
+    assert metrics["retrace_frechet_max"] <= 0.05
+
+
+def test_the_favicon_is_served(client) -> None:
+    answer = client.get("/favicon.ico")
+    assert answer.status_code == 200 and answer.headers["content-type"] == "image/svg+xml"
+    assert answer.text.startswith("<svg")
