@@ -226,22 +226,23 @@ def retrace(policy: Policy, demos: Any, *, durations: float = RETRACE_DURATIONS)
     }
 
 
-def warnings(record: dict, *, phased: bool = False) -> list[str]:
+def warnings(record: dict, *, hint: bool = True) -> list[str]:
     """What a user must know before trusting a model, one sentence each, from an
     :func:`evaluate` record: rollouts that do not retrace the demonstrations, a stiff field,
     starts that do not arrive, and decrease violations.
 
     Arguments:
         record: The record (its ``retrace_*`` figures and ``stability`` report).
-        phased: Whether the policy already carries a phase (no hint to add one then).
+        hint: Whether to suggest a phase for rollouts that do not retrace (not for a policy
+            that has one, nor for behavioural cloning, whose rollouts stray for want of V).
     """
     said = []
     worst = record.get("retrace_frechet_max")
     if worst is not None and not worst <= RETRACE_WARNING:
-        hint = "" if phased else " (paths that cross or wind need a phase: --phase-codes 3)"
+        advice = " (paths that cross or wind need a phase: --phase-codes 3)" if hint else ""
         said.append(
             f"rollouts from the demonstrations' starts do not retrace them: Frechet distance "
-            f"up to {100 * worst:.3g} % of the extent (over {100 * RETRACE_WARNING:g} %){hint}"
+            f"up to {100 * worst:.3g} % of the extent (over {100 * RETRACE_WARNING:g} %){advice}"
         )
     end = record.get("retrace_final_max")
     if end is not None and not end <= ARRIVAL_TOLERANCE:
@@ -259,10 +260,11 @@ def warnings(record: dict, *, phased: bool = False) -> list[str]:
     rollouts, fraction = stability.get("rollouts"), stability.get("converged_fraction")
     if rollouts and fraction is not None and fraction < 1:
         missed = rollouts - round(fraction * rollouts)
+        stuck = stability.get("out_of_steps", 0)
         said.append(
             f"{missed} of {rollouts} random starts had not arrived after "
-            f"{stability['horizon']:.3g} s ({stability.get('out_of_steps', 0)} of them out of "
-            "steps: the guard kept shortening them)"
+            f"{stability['horizon']:.3g} s"
+            + (f" ({stuck} of them out of steps: the guard kept shortening them)" if stuck else "")
         )
     if stability.get("decrease_violations"):
         said.append(f"V fails to decrease at {stability['decrease_violations']} sampled states")
@@ -284,5 +286,6 @@ def evaluate(
     record = accuracy(policy64, demos, split)
     record.update(retrace(policy64, demos))
     record["stability"] = check_stability(policy64, demos, check).to_dict()
-    record["warnings"] = warnings(record, phased=isinstance(policy64.space, Phased))
+    phased = isinstance(policy64.space, Phased)
+    record["warnings"] = warnings(record, hint=policy64.stable and not phased)
     return record

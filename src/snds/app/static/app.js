@@ -203,8 +203,8 @@
       if (status.state === "done") {
         // The job's time is training, then the stability check (and saving): say which is which.
         const training = status.metrics && status.metrics.train_seconds;
-        const split = training == null ? "" : ` (${training.toFixed(1)} s training, ${(status.seconds - training).toFixed(1)} s check)`;
-        jobProgress(job, 1, `${name}: done in ${status.seconds.toFixed(1)} s${split}`);
+        const split = training == null ? ` in ${status.seconds.toFixed(1)} s` : `: ${training.toFixed(1)} s training + ${(status.seconds - training).toFixed(1)} s check`;
+        jobProgress(job, 1, `${name}: done${split}`);
         say(job.method === "bc"
           ? "BC trained: click to start it anywhere, and compare."
           : "Trained. Click anywhere to start the policy; drag the moving point to push it.");
@@ -718,6 +718,7 @@
 
   function fmt(value, digits = 3) {
     if (value == null) return "–";
+    if (value === 0) return "0";
     return Math.abs(value) >= 1e-3 && Math.abs(value) < 1e4 ? value.toPrecision(digits) : value.toExponential(digits - 1);
   }
 
@@ -729,7 +730,7 @@
       const set = (name, text) => { $(`${method}-${name}`).textContent = text; };
       const arrived = s ? Math.round(s.converged_fraction * s.rollouts) : 0;
       set("converged", s ? `${arrived} of ${s.rollouts}` : "–");
-      set("arrival", s && arrived ? `${fmt(s.time_to_arrive_median, 2)} s (${fmt(s.time_to_arrive_median_durations, 2)}×)` : "–");
+      set("arrival", s && arrived ? `${fmt(s.time_to_arrive_median, 2)} s, ${fmt(s.time_to_arrive_median_durations, 2)}×` : "–");
       set("retrace", m && m.retrace_frechet_max != null ? `${fmt(100 * m.retrace_frechet_max, 2)} %` : "–");
       set("violations", s ? (s.samples_checked ? `${s.decrease_violations} of ${s.samples_checked}` : "no V") : "–");
       set("safe", s ? (s.largest_safe_dt == null ? "no V" : `${fmt(s.largest_safe_dt, 2)} s`) : "–");
