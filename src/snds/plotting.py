@@ -113,8 +113,9 @@ def plot_panels(
 
     Each panel shows the policy's streamlines, the demonstrations, rollouts from the
     demonstrations' starts (solid) and from ``random_starts`` uniform starts in the view
-    (dashed, the same starts for every panel of a column), each for twice the longest
-    demonstration. A policy that fails shows it: dashed paths that stop short of the target.
+    (dashed, the same starts for every panel of a column), each until it arrives
+    (:func:`rollouts_until_arrival`). A policy that fails shows it: dashed paths that stop
+    short of the target.
     The policies are evaluated with one torch thread (:func:`snds.parallel.torch_threads`):
     a rollout calls a small network on a few states thousands of times, which several
     threads slow down many times over on a busy machine.
@@ -150,11 +151,12 @@ def plot_panels(
                 starts[:, 0] = rng.uniform(x1[0], x1[-1], random_starts)
                 starts[:, 1] = rng.uniform(x2[0], x2[-1], random_starts)
                 column_starts[j] = starts
-            dt = demos.mean_dt()
-            steps = int(2 * demos.max_duration() / dt)
             demo_starts = np.stack([demo.positions[0] for demo in demos])
-            rollouts = rollout_numpy(policy, demo_starts, dt=dt, steps=steps)
-            perturbed = rollout_numpy(policy, column_starts[j], dt=dt, steps=steps)
+            # Until arrival, as every plot of a run (rollouts_until_arrival), in one batch.
+            both, _ = rollouts_until_arrival(
+                policy, demos, np.concatenate([demo_starts, column_starts[j]]), dt=demos.mean_dt()
+            )
+            rollouts, perturbed = both[: len(demo_starts)], both[len(demo_starts) :]
             _draw_field(ax, policy, x1, x2, points, density=0.9)
             _draw_paths(ax, demos, rollouts, perturbed, random_label="rollout from random start")
             ax.set_aspect("equal")
@@ -169,14 +171,7 @@ def plot_panels(
             if label not in labels:
                 handles.append(handle)
                 labels.append(label)
-    fig.legend(
-        handles,
-        labels,
-        loc="outside lower center",
-        ncol=len(labels),
-        frameon=False,
-        fontsize="small",
-    )
+    figure_legend(fig, handles, labels, loc="outside lower center")
     return _save(fig, path)
 
 
@@ -902,14 +897,30 @@ def _finish(
 def _legend(fig, ax) -> None:
     # Below the axes, so it never hides a streamline, a demonstration or the target.
     handles, labels = ax.get_legend_handles_labels()
-    fig.legend(
-        handles,
-        labels,
-        loc="outside lower center",
-        ncol=min(len(labels), 3),
-        frameon=False,
-        fontsize="small",
-    )
+    figure_legend(fig, handles, labels, loc="outside lower center", most_columns=3)
+
+
+def figure_legend(
+    fig: Figure, handles: list, labels: list[str], *, loc: str, most_columns: int | None = None
+):
+    """A legend of the whole figure outside its axes (``loc`` such as "outside lower
+    center", under constrained layout), in as many columns as fit the figure's width: it
+    hides no data and is not cut off at the figure's sides.
+
+    Returns:
+        The legend.
+    """
+    columns = min(len(labels), most_columns or len(labels))
+    width = fig.get_figwidth() * fig.dpi
+    while True:
+        legend = fig.legend(
+            handles, labels, loc=loc, ncol=max(columns, 1), frameon=False, fontsize="small"
+        )
+        fig.draw_without_rendering()
+        if columns <= 1 or legend.get_window_extent().width <= 0.98 * width:
+            return legend
+        legend.remove()
+        columns -= 1
 
 
 def _despine(ax) -> None:
