@@ -223,3 +223,19 @@ def test_cli_recovery_after_a_sideways_push_is_the_return_to_the_path(
     line = capsys.readouterr().out
     assert f"back on it (within {record['path_tolerance']:.3g} units, 5 % of the extent)" in line
     assert f"{recovery:.2f} s later" in line and f"up to {record['off_path']:.3g} units" in line
+
+
+def test_a_3d_model_with_a_phase_is_simulated_and_photographed(tmp_path: Path) -> None:
+    # GIVEN an untrained 3-D model with a phase of 3 codes (its demonstrations' states are 6
+    # numbers: render_frames placed them as 3-D positions and failed, issue 39)
+    import snds
+    from snds.phase import Phase
+    from snds.sim.plots import plot_frames, render_frames
+
+    demos = Phase(codes=3, seed=0).apply(spiral_demos(dim=3))
+    policy = snds.make_policy(demos, config=FAST, seed=0).double().eval()
+    run = simulate(policy, demos[0].states[0], SimConfig(robot="iiwa", time_limit=0.3))
+    # THEN the run's frames show the demonstrations' positions, and the strip is written
+    frames, steps = render_frames(run, demos, count=2, width=80, height=60)
+    assert len(frames) == 2 and np.std(frames[-1]) > 5
+    assert_png(plot_frames(run, frames, steps, tmp_path / "frames.png"))

@@ -64,6 +64,7 @@ from snds.app.strokes import (
     write_csv,
 )
 from snds.app.worker import Job, Jobs
+from snds.arrival import ARRIVAL_TOLERANCE
 from snds.cli import _build_parser
 from snds.data import Normalization
 from snds.errors import SNDSError
@@ -256,8 +257,8 @@ def _load_results(job: Job) -> None:
             "dt": demos.mean_dt(),
             "duration": demos.max_duration(),
             "extent": extent,
-            # As the stability check counts a rollout converged.
-            "tolerance": 0.01 * extent,
+            # As the stability check counts a rollout arrived (snds.arrival).
+            "tolerance": ARRIVAL_TOLERANCE * extent,
         },
     )
 
