@@ -1,4 +1,5 @@
 import numpy as np
+import pytest
 import torch
 
 from snds.data import Demonstration, Demonstrations, split_samples
@@ -79,7 +80,7 @@ def test_retrace_measures_every_demonstration_over_one_and_a_half_durations():
     from snds.evaluate import retrace
 
     demos = Demonstrations((_line(1000),), np.zeros(2))
-    record = retrace(linear_policy(1.0), demos)
+    record, _ = retrace(linear_policy(1.0), demos)
     extent = demos.extent()
     assert record["retrace_durations"] == 1.5
     end = (1 - np.exp(-4.0)) * np.exp(-6.0) / extent
@@ -101,7 +102,7 @@ def test_a_demonstration_of_few_samples_is_retraced_as_the_line_through_them():
     demo = Demonstration(positions=x, velocities=np.gradient(x, t, axis=0), times=t)
     demos = Demonstrations((demo,), np.zeros(2))
     assert path_reference(demo, min_samples=RETRACE_SAMPLES).shape == (RETRACE_SAMPLES, 2)
-    record = retrace(linear_policy(1.0), demos)
+    record, _ = retrace(linear_policy(1.0), demos)
     # THEN the rollout takes 200 steps per duration (not 2 of 2 s) and the demonstration is
     # the line through its points: on the same axis, the gap is the end's
     # (Euler's (1 - 0.02)^300 is e^-6.06: 6 % short of the exact flow's end)
@@ -144,3 +145,19 @@ def test_warnings_say_what_fails_and_nothing_when_all_is_well():
         "(a controller at the data's rate needs the guarded step)"
     )
     assert said[2] == "50 of 500 random starts had not arrived after 40 s"
+
+
+def test_accuracy_reuses_the_retrace_rollouts_as_its_own(spiral):
+    # GIVEN the rollouts of retrace (1.5 durations) from every start of 400-sample demos
+    from snds.evaluate import retrace
+
+    policy = float64_copy(make_policy(spiral))
+    _, prefixes = retrace(policy, spiral)
+    # THEN their first duration is accuracy's own reproduction, to the batch's rounding
+    assert sorted(prefixes) == [0, 1, 2]
+    for i, path in enumerate(reproduce(policy, spiral, [0, 1, 2])):
+        np.testing.assert_allclose(prefixes[i], path, rtol=0, atol=1e-7 * spiral.extent())
+    split = split_samples(spiral, test_fraction=0.2, seed=0)
+    given = accuracy(policy, spiral, split, paths=prefixes)
+    own = accuracy(policy, spiral, split)
+    assert given["dtw"] == pytest.approx(own["dtw"], rel=1e-6)

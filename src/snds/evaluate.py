@@ -127,7 +127,9 @@ def _errors_along(space: Space, path: np.ndarray, reference: np.ndarray) -> np.n
     return errors.mean(dim=0).numpy()
 
 
-def accuracy(policy: Policy, demos: Any, split: Split) -> dict[str, float]:
+def accuracy(
+    policy: Policy, demos: Any, split: Split, *, paths: dict[int, np.ndarray] | None = None
+) -> dict[str, float]:
     """Velocity MSE on the test samples (also relative to their mean squared speed); DTW,
     Frechet distance, swept error area (2-D only) and final distance of the reproductions from
     the demonstrations' starts.
@@ -144,6 +146,8 @@ def accuracy(policy: Policy, demos: Any, split: Split) -> dict[str, float]:
         policy: The policy, in float64.
         demos: All demonstrations of the task (poses for a pose policy).
         split: The train / test split (test samples for MSE; held-out demos for DTW).
+        paths: Reproductions already rolled out (:func:`reproduce`), by demonstration index;
+            the others are rolled out here.
     """
     space = policy.space
     test = split.test()
@@ -160,7 +164,10 @@ def accuracy(policy: Policy, demos: Any, split: Split) -> dict[str, float]:
     speed, extent = demos.max_speed(), demos.extent()
     target = np.asarray(demos.target)
     indices = evaluation_demos(split)
-    paths = reproduce(policy, demos, indices)
+    known = paths or {}
+    missing = [i for i in indices if i not in known]
+    rolled = dict(zip(missing, reproduce(policy, demos, missing)))
+    paths = [known[i] if i in known else rolled[i] for i in indices]
     references = [path_reference(demos[i]) for i in indices]
     positions = [space.positions(p) for p in paths]
     reference_positions = [space.positions(r) for r in references]
@@ -198,7 +205,9 @@ def accuracy(policy: Policy, demos: Any, split: Split) -> dict[str, float]:
     return record
 
 
-def retrace(policy: Policy, demos: Any, *, durations: float = RETRACE_DURATIONS) -> dict:
+def retrace(
+    policy: Policy, demos: Any, *, durations: float = RETRACE_DURATIONS
+) -> tuple[dict, dict[int, np.ndarray]]:
     """How far rollouts from every demonstration's start stay from that demonstration.
 
     Each rollout (:func:`reproduce`, with steps of its demonstration's period or shorter:
@@ -207,9 +216,11 @@ def retrace(policy: Policy, demos: Any, *, durations: float = RETRACE_DURATIONS)
     (:func:`snds.metrics.frechet`: the leash that walks both paths forward), in extents.
 
     Returns:
-        ``retrace_frechet_max`` and ``retrace_frechet_median`` over the demonstrations,
-        ``retrace_final_max`` (the largest distance of a rollout's end from the target), all
-        in extents, and ``retrace_durations``.
+        The record: ``retrace_frechet_max`` and ``retrace_frechet_median`` over the
+        demonstrations, ``retrace_final_max`` (the largest distance of a rollout's end from
+        the target), all in extents, and ``retrace_durations``; and, by index, the first
+        duration of each rollout whose steps are :func:`accuracy`'s own (a demonstration of
+        :data:`RETRACE_SAMPLES` samples or more), which it then need not roll out again.
     """
     space, extent = policy.space, demos.extent()
     indices = list(range(len(demos)))
@@ -218,12 +229,19 @@ def retrace(policy: Policy, demos: Any, *, durations: float = RETRACE_DURATIONS)
     references = [path_reference(demos[i], min_samples=RETRACE_SAMPLES) for i in indices]
     gaps = [frechet(space.positions(p), space.positions(r)) for p, r in zip(paths, references)]
     ends = [final_distance(space.positions(p), target) for p in paths]
-    return {
+    record = {
         "retrace_frechet_max": float(np.max(gaps) / extent),
         "retrace_frechet_median": float(np.median(gaps) / extent),
         "retrace_final_max": float(np.max(ends) / extent),
         "retrace_durations": durations,
     }
+    # The same steps as accuracy's reproductions: their first duration is one.
+    prefixes = {
+        i: p[: _samples(demos[i], 0)]
+        for i, p in zip(indices, paths)
+        if _samples(demos[i], RETRACE_SAMPLES) == _samples(demos[i], 0)
+    }
+    return record, prefixes
 
 
 def warnings(record: dict, *, hint: bool = True) -> list[str]:
@@ -283,8 +301,9 @@ def evaluate(
         check: The stability check's settings (its seed, sizes, grid starts).
     """
     policy64 = float64_copy(policy)
-    record = accuracy(policy64, demos, split)
-    record.update(retrace(policy64, demos))
+    retraced, paths = retrace(policy64, demos)
+    record = accuracy(policy64, demos, split, paths=paths)
+    record.update(retraced)
     record["stability"] = check_stability(policy64, demos, check).to_dict()
     phased = isinstance(policy64.space, Phased)
     record["warnings"] = warnings(record, hint=policy64.stable and not phased)
