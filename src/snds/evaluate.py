@@ -257,7 +257,7 @@ def warnings(record: dict, *, hint: bool = True) -> list[str]:
     said = []
     worst = record.get("retrace_frechet_max")
     if worst is not None and not worst <= RETRACE_WARNING:
-        advice = " (paths that cross or wind need a phase: --phase-codes 3)" if hint else ""
+        advice = " (for paths that cross or wind, a phase helps: --phase-codes 3)" if hint else ""
         said.append(
             f"rollouts from the demonstrations' starts do not retrace them: Frechet distance "
             f"up to {100 * worst:.3g} % of the extent (over {100 * RETRACE_WARNING:g} %){advice}"

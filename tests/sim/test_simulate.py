@@ -18,7 +18,7 @@ from snds.models import save_model
 from snds.policy import PolicyConfig
 from snds.sim import Push, SimConfig, simulate
 from snds.sim.robots import get_robot
-from snds.sim.run import Placement, default_scale, unpushed_path
+from snds.sim.run import Placement, default_scale, rest_of_path, unpushed_path
 
 from conftest import SMALL, make_policy, spiral_demos
 
@@ -84,7 +84,8 @@ def test_arm_reaches_the_target_after_a_push(pushed_run, policy, demos) -> None:
     # and the arm made up for it: back on its unpushed path (snds.arrival), before arrival
     assert run.recovery_time is not None
     assert 0 <= run.recovery_time < run.times[-1] - run.push_time
-    off = distance_to_path(run.states, unpushed_path(policy, start, dt=0.01, steps=3000))
+    path = rest_of_path(unpushed_path(policy, start, dt=0.01, steps=3000), run.states[pushed - 1])
+    off = distance_to_path(run.states, path)
     back = pushed + round(run.recovery_time * config.control_rate)
     assert (off[back:] <= run.path_tolerance).all()
     assert run.off_path == pytest.approx(off[pushed:].max())
@@ -209,8 +210,8 @@ def test_cli_recovery_after_a_sideways_push_is_the_return_to_the_path(
     record = json.loads((out / "sim.json").read_text())
     # THEN recovery is the time from the push until the path is within 5 % of the extent
     states, times = np.array(record["task_path"]), np.array(record["time"])
-    off = distance_to_path(states, path)
     pushed = int(np.searchsorted(times, record["push_time_s"]))
+    off = distance_to_path(states, rest_of_path(path, states[pushed - 1]))
     assert off[pushed] > 0.1 * extent  # the push took it off the path
     assert record["path_tolerance"] == pytest.approx(PATH_TOLERANCE * extent)
     recovery = record["recovery_time_s"]

@@ -528,8 +528,9 @@ class SimResult:
         push_offset: The end effector's actual displacement by the push, metres (3,).
         recovery_time: Seconds from the push until the end effector is back on its path
             for good (:func:`snds.arrival.recovery_time`): within ``path_tolerance`` of the
-            policy's own rollout from the same start without the push; None without a push,
-            or if it never is.
+            rest of the policy's own rollout from the same start without the push (from where
+            the push took the tool, :func:`rest_of_path`); None without a push, or if it
+            never is.
         path_tolerance: The distance to the path counted as on it, task units
             (:data:`snds.arrival.PATH_TOLERANCE` x the demonstrations' extent).
         off_path: The largest distance of the end effector from that path after the push,
@@ -776,13 +777,16 @@ def _recovery(
     dt: float,
 ) -> dict:
     """The recovery after a push (the fields of :class:`SimResult`): the time until the
-    measured path (task positions, (T, n)) is back on the path the policy takes from the same
-    start without the push, within :data:`~snds.arrival.PATH_TOLERANCE` of the extent."""
+    measured path (task positions, (T, n)) is back on the rest of the path the policy takes
+    from the same start without the push (:func:`rest_of_path`), within
+    :data:`~snds.arrival.PATH_TOLERANCE` of the extent."""
     if push_time is None:
         return {"recovery_time": None}
     tolerance = PATH_TOLERANCE * float(policy.extents()[0])
-    path = unpushed_path(policy, start, dt=dt, steps=len(times) - 1)
     after = times >= push_time
+    path = rest_of_path(
+        unpushed_path(policy, start, dt=dt, steps=len(times) - 1), states[~after][-1]
+    )
     return {
         "recovery_time": recovery_time(
             times, states, path, push_time=push_time, tolerance=tolerance
@@ -790,6 +794,13 @@ def _recovery(
         "path_tolerance": tolerance,
         "off_path": float(distance_to_path(states[after], path).max()) if after.any() else 0.0,
     }
+
+
+def rest_of_path(path: np.ndarray, position: np.ndarray) -> np.ndarray:
+    """The part of a path (S, n) from its sample nearest to ``position`` (n,) on: where the
+    motion was when it was pushed, so that coming back near a part already passed (a loop, an
+    earlier leg) is not counted as being back on the path."""
+    return path[int(np.linalg.norm(path - position, axis=-1).argmin()) :]
 
 
 @torch.no_grad()
