@@ -4,8 +4,9 @@ r"""What "arrived" and "recovered" mean: one definition for the check, the simul
   demonstrations' extent by default, and staying there. The time to arrive is the first time
   from which the motion stays within it (:func:`arrival_time`).
 - **Recovered** (after a push): back on the path, within :data:`PATH_TOLERANCE` of the extent
-  of the path the motion was meant to follow (the demonstrated path, or the rollout from the
-  same start without the push), and staying on it. The time to recover counts from the push
+  of the rest of the path the motion was meant to follow (the demonstrated path, or the
+  rollout from the same start without the push, from where the push took it on), and staying
+  on it. The time to recover counts from the push
   (:func:`recovery_time`). Being "as close to the target as before the push" is not
   recovering: a push sideways along a level set of the distance leaves the motion off its
   path at the same distance.
@@ -100,8 +101,9 @@ def recovery_time(
     Arguments:
         times: Sample times, shape (T,), increasing.
         positions: The pushed motion's positions, shape (T, n).
-        path: The path it was meant to follow, shape (S, n): the demonstrated path, or the
-            rollout from the same start without the push.
+        path: The rest of the path it was meant to follow, shape (S, n): the demonstrated
+            path, or the rollout from the same start without the push, from the point nearest
+            to where the push took it on (a leg already passed is not the path).
         push_time: When the push happened, in the units of ``times``.
         tolerance: Distance to the path counted as on it (:data:`PATH_TOLERANCE` x the extent).
 
