@@ -1,4 +1,5 @@
 import json
+import zipfile
 
 import numpy as np
 import pytest
@@ -211,3 +212,114 @@ def test_train_with_a_warped_v_end_to_end(tmp_path):
 
     policy, _ = load_model(out)
     assert policy.lyapunov.warp is not None and len(policy.lyapunov.warp.layers) == 2
+
+
+def test_metrics_report_arrival_retracing_and_warnings(trained):
+    metrics = json.loads((trained / "metrics.json").read_text())
+    stability = metrics["stability"]
+    # times to arrive from the check's starts, in seconds and in the longest demo's durations
+    assert 0 < stability["time_to_arrive_median"] <= stability["time_to_arrive_max"]
+    assert stability["time_to_arrive_max"] <= stability["horizon"]
+    assert stability["time_to_arrive_max_durations"] == pytest.approx(
+        stability["time_to_arrive_max"] / stability["duration"]
+    )
+    assert stability["still_moving"] == stability["out_of_steps"] == 0
+    # how far the rollouts from each demonstration's start stay from it (in extents): the
+    # Frechet leash is at least the gap at the end
+    assert metrics["retrace_durations"] == 1.5
+    assert 0 < metrics["retrace_frechet_median"] <= metrics["retrace_frechet_max"]
+    assert metrics["retrace_final_max"] <= metrics["retrace_frechet_max"]
+    # a warning for a stiff field exactly when the safe step is below the data's
+    stiff = stability["largest_safe_dt"] < stability["dt"]
+    assert any(w.startswith("stiff field") for w in metrics["warnings"]) == stiff
+
+
+def test_summary_line_gives_significant_digits_arrival_and_warnings(capsys):
+    from snds.cli._common import summary
+
+    # GIVEN the record of a well-fitted but stiff model that does not retrace
+    stability = {
+        "rollouts": 500,
+        "converged_fraction": 1.0,
+        "time_to_arrive_median": 2.345,
+        "time_to_arrive_median_durations": 1.172,
+        "time_to_arrive_max": 7.5,
+        "time_to_arrive_max_durations": 3.75,
+        "still_moving": 0,
+        "horizon": 20.0,
+        "decrease_violations": 0,
+        "samples_checked": 50000,
+        "integrator": "guarded euler",
+        "largest_safe_dt": 3.3e-5,
+        "dt": 0.01,
+        "shortened_fraction": 0.99,
+    }
+    record = {
+        "train_seconds": 9.04,
+        "velocity_mse_paper": 4.2e-6,
+        "dtw_paper": 0.0412,
+        "retrace_frechet_max": 0.173,
+        "retrace_frechet_median": 0.021,
+        "stability": stability,
+        "warnings": ["stiff field: ...", "rollouts ... do not retrace them: ..."],
+    }
+    line = summary(record)
+    # THEN one line, numbers in significant digits (never "0.0000")
+    assert "\n" not in line and "0.0000" not in line
+    assert line == (
+        "trained in 9.04 s; velocity MSE 4.2e-06 (paper scale), DTW 0.0412 (paper scale); "
+        "from the demonstrations' starts Frechet 17.3 % of the extent at worst, 2.1 % median; "
+        "arrived from 500 of 500 random starts in 2.35 s median (1.17x the longest "
+        "demonstration), 7.5 s at most (3.75x); 0 decrease violations in 50000 samples; "
+        "largest safe Euler step 3.3e-05 s (data: 0.01 s), guard shortened steps in 99 % of "
+        "rollouts; WARNING: stiff field: ...; WARNING: rollouts ... do not retrace them: ..."
+    )
+    # and starts that did not arrive are counted as such, beside the cap
+    short = summary({**record, "stability": {**stability, "converged_fraction": 0.072}})
+    assert "arrived from 36 of 500 random starts" in short and "still moving at 20 s" in short
+
+
+def test_evaluate_prints_the_summary_of_the_new_metrics(trained, capsys):
+    args = ["evaluate", str(trained), "--rollouts", "100", "--samples", "5000"]
+    assert main(args) == 0
+    line = capsys.readouterr().out.strip()
+    assert line.startswith(f"{trained}: trained in ") and line.count("\n") == 0
+    assert "arrived from 100 of 100 random starts in " in line and "Frechet " in line
+
+
+def test_a_zipped_model_is_refused_with_the_command_that_unzips_it(trained, tmp_path, capsys):
+    # GIVEN the page's download: the model folder zipped as NAME/file
+    archive = tmp_path / "model.zip"
+    with zipfile.ZipFile(archive, "w") as zipped:
+        for path in trained.iterdir():
+            if path.is_file():
+                zipped.write(path, f"snds-snds-1234/{path.name}")
+    # THEN snds evaluate exits 2 with one line saying how to unzip it and what to pass
+    assert main(["evaluate", str(archive)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == (
+        f"snds: error: {archive}: a zip archive, not a model folder; unzip it first: unzip "
+        f"{archive} -d {tmp_path} and pass {tmp_path / 'snds-snds-1234'}"
+    )
+
+
+def test_plots_roll_out_until_every_rollout_arrives():
+    # GIVEN pi = -0.2 x (slow: it arrives within 1 % of the extent after log(100) / 0.2 = 23 s)
+    # and one demonstration of 4 s along a line: the plots used to stop at 1.5 x 4 s
+    from snds.data import Demonstration, Demonstrations
+    from snds.plotting import rollouts_until_arrival
+
+    from conftest import linear_policy
+
+    t = np.arange(0.0, 4.0 + 1e-9, 0.01)
+    x = np.stack([1 - t / 4, 0 * t], axis=1)
+    demos = Demonstrations(
+        (Demonstration(positions=x, velocities=np.gradient(x, t, axis=0), times=t),), np.zeros(2)
+    )
+    starts = np.array([[1.0, 0.0], [0.0, -0.5]])
+    rollouts, arrived = rollouts_until_arrival(linear_policy(0.2), demos, starts, dt=0.01)
+    # THEN each is followed to the Euler step at which (1 - 0.002)^k |x0| <= 0.01 first holds,
+    # in pieces of 6 s, and the longest run ends with the piece in which it arrives
+    exact = np.ceil(np.log(0.01 / np.linalg.norm(starts, axis=1)) / np.log(1 - 0.002))
+    np.testing.assert_array_equal(arrived, exact.astype(int))
+    assert rollouts.shape[1] == 600 * int(np.ceil(exact.max() / 600)) + 1

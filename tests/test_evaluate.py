@@ -1,4 +1,5 @@
 import numpy as np
+import pytest
 import torch
 
 from snds.data import Demonstration, Demonstrations, split_samples
@@ -70,3 +71,93 @@ def test_a_long_pose_demonstration_keeps_its_orientations_when_resampled():
     np.testing.assert_allclose(np.linalg.norm(reference[:, 3:], axis=1), 1.0, atol=1e-12)
     turned = 2 * np.arctan2(reference[:, 5], reference[:, 6])
     np.testing.assert_allclose(turned, np.linspace(0.0, 1.0, 5000), atol=1e-4)
+
+
+def test_retrace_measures_every_demonstration_over_one_and_a_half_durations():
+    # GIVEN pi = -x and a demonstration along x(t) = e^-t - e^-4 (shifted to end at 0): the
+    # rollout from its start, (1 - e^-4) e^-t, runs 1.5 x 4 s and ends (1 - e^-4) e^-6 from
+    # the target
+    from snds.evaluate import retrace
+
+    demos = Demonstrations((_line(1000),), np.zeros(2))
+    record, _ = retrace(linear_policy(1.0), demos)
+    extent = demos.extent()
+    assert record["retrace_durations"] == 1.5
+    end = (1 - np.exp(-4.0)) * np.exp(-6.0) / extent
+    assert abs(record["retrace_final_max"] - end) < 1e-4
+    # both walk the same segment of the x axis, so the Frechet leash is the end gap (the
+    # leash may wait: timing is not compared)
+    assert record["retrace_frechet_max"] >= record["retrace_final_max"]
+    assert abs(record["retrace_frechet_max"] - end) < 1e-4
+    assert record["retrace_frechet_median"] == record["retrace_frechet_max"]  # one demo
+
+
+def test_a_demonstration_of_few_samples_is_retraced_as_the_line_through_them():
+    # GIVEN the same motion sampled at 3 points only: Euler steps of its 2 s spacing would be
+    # no rollout at all (1 - 2 = -1: it would jump across the target)
+    from snds.evaluate import RETRACE_SAMPLES, retrace
+
+    t = np.array([0.0, 2.0, 4.0])
+    x = np.stack([np.exp(-t) - np.exp(-4.0), 0 * t], axis=1)
+    demo = Demonstration(positions=x, velocities=np.gradient(x, t, axis=0), times=t)
+    demos = Demonstrations((demo,), np.zeros(2))
+    assert path_reference(demo, min_samples=RETRACE_SAMPLES).shape == (RETRACE_SAMPLES, 2)
+    record, _ = retrace(linear_policy(1.0), demos)
+    # THEN the rollout takes 200 steps per duration (not 2 of 2 s) and the demonstration is
+    # the line through its points: on the same axis, the gap is the end's
+    # (Euler's (1 - 0.02)^300 is e^-6.06: 6 % short of the exact flow's end)
+    end = (1 - np.exp(-4.0)) * np.exp(-6.0) / demos.extent()
+    assert abs(record["retrace_final_max"] - end) < 0.07 * end
+    # and the discrete leash is within the resampled polyline's spacing (0.0086) of that gap,
+    # where Euler steps of 2 s (x -> -x) would have put it near the whole extent
+    assert record["retrace_frechet_max"] < record["retrace_final_max"] + 0.0087
+
+
+def test_warnings_say_what_fails_and_nothing_when_all_is_well():
+    from snds.evaluate import warnings
+
+    good = {
+        "retrace_frechet_max": 0.02,
+        "retrace_final_max": 0.001,
+        "retrace_durations": 1.5,
+        "stability": {
+            "largest_safe_dt": 0.02,
+            "dt": 0.01,
+            "rollouts": 500,
+            "converged_fraction": 1.0,
+            "horizon": 40.0,
+            "decrease_violations": 0,
+        },
+    }
+    assert warnings(good) == []
+    bad = {
+        **good,
+        "retrace_frechet_max": 0.28,
+        "stability": {**good["stability"], "largest_safe_dt": 3.3e-5, "converged_fraction": 0.9},
+    }
+    said = warnings(bad)
+    assert len(said) == 3
+    assert said[0].startswith("rollouts from the demonstrations' starts do not retrace them: ")
+    assert "up to 28 % of the extent (over 5 %)" in said[0] and "--phase-codes" in said[0]
+    assert "--phase-codes" not in warnings(bad, hint=False)[0]
+    assert said[1] == (
+        "stiff field: the largest safe Euler step 3.3e-05 s is below the data's step 0.01 s "
+        "(a controller at the data's rate needs the guarded step)"
+    )
+    assert said[2] == "50 of 500 random starts had not arrived after 40 s"
+
+
+def test_accuracy_reuses_the_retrace_rollouts_as_its_own(spiral):
+    # GIVEN the rollouts of retrace (1.5 durations) from every start of 400-sample demos
+    from snds.evaluate import retrace
+
+    policy = float64_copy(make_policy(spiral))
+    _, prefixes = retrace(policy, spiral)
+    # THEN their first duration is accuracy's own reproduction, to the batch's rounding
+    assert sorted(prefixes) == [0, 1, 2]
+    for i, path in enumerate(reproduce(policy, spiral, [0, 1, 2])):
+        np.testing.assert_allclose(prefixes[i], path, rtol=0, atol=1e-7 * spiral.extent())
+    split = split_samples(spiral, test_fraction=0.2, seed=0)
+    given = accuracy(policy, spiral, split, paths=prefixes)
+    own = accuracy(policy, spiral, split)
+    assert given["dtw"] == pytest.approx(own["dtw"], rel=1e-6)

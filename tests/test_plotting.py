@@ -156,3 +156,23 @@ def test_panels_roll_out_on_one_torch_thread_and_restore_the_callers(tmp_path: P
     # caller's two threads are back
     assert seen and set(seen) == {1}
     assert after == 2
+
+
+def test_a_figure_legend_takes_as_many_columns_as_fit_the_figure():
+    # GIVEN a one-panel figure 2.9 inches wide (a grid of one motion) and five entries
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from snds.plotting import figure_legend
+
+    fig = Figure(figsize=(2.9, 3.0), dpi=100, layout="constrained")
+    ax = fig.subplots()
+    labels = ["demonstration", "rollout from demo start", "rollout from random start", "a", "b"]
+    handles = [ax.plot([0, 1], [k, k])[0] for k in range(len(labels))]
+    legend = figure_legend(fig, handles, labels, loc="outside lower center")
+    renderer = FigureCanvasAgg(fig).get_renderer()
+    fig.draw(renderer)
+    box = legend.get_window_extent(renderer)
+    # THEN it is not cut at the figure's sides (one row of five was 2x the figure's width)
+    assert 0 <= box.x0 and box.x1 <= fig.bbox.x1
+    assert legend._ncols < len(labels)

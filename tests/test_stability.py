@@ -234,3 +234,23 @@ def test_a_field_the_guard_shortens_at_every_step_ends_within_the_step_budget():
     )
     assert report.converged_fraction == 1.0
     assert report.shortened_fraction == 1.0
+
+
+def test_coarse_data_do_not_cut_rollouts_short_of_the_cap():
+    # GIVEN data sampled every 2 s (as coarse as the README's strokes of 3 points) and pi = -x:
+    # the check's step budget used to be horizon / dt = 10 steps of at most 0.4 s, which ended
+    # every rollout at 4 s of its 20 s cap, "still moving"
+    from conftest import linear_policy
+
+    demos = _line_demo(2.0)
+    report = check_stability(linear_policy(1.0), demos, CheckConfig(rollouts=41, samples=0, seed=0))
+    # THEN every start arrives, when the exact flow does: t* = log(|x0| / tol)
+    starts = np.random.default_rng(0).uniform(-3.0, 3.0, size=(41, 2))
+    exact = np.log(np.linalg.norm(starts, axis=1) / report.tolerance)
+    assert report.converged_fraction == 1.0 and report.out_of_steps == 0
+    assert report.horizon == 20.0 and report.duration == 2.0
+    assert abs(report.time_to_arrive_max - exact.max()) < 0.05 * exact.max()
+    assert abs(report.time_to_arrive_median - np.median(exact)) < 0.05 * np.median(exact)
+    # and the times are also given in longest-demonstration durations
+    assert report.time_to_arrive_max_durations == report.time_to_arrive_max / 2.0
+    assert report.time_to_arrive_median_durations == report.time_to_arrive_median / 2.0

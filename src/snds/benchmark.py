@@ -24,6 +24,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
+from matplotlib.figure import Figure
 
 from snds.data import LASA_NAMES, DataSource, split_samples
 from snds.data.files import LOADERS
@@ -35,7 +36,7 @@ from snds.method import Fitted
 from snds.methods import METHODS, get_method
 from snds.models import load_model
 from snds.parallel import starmap_unordered, torch_threads
-from snds.plotting import Panel, plot_panels
+from snds.plotting import Panel, figure_legend, plot_panels
 from snds.policy import float64_copy
 from snds.runs import RunFolder
 from snds.spaces import SE3, Euclidean, Space
@@ -589,6 +590,9 @@ def summarise(rows: Sequence[dict]) -> str:
         if len(values) == 0:
             return "n/a"
         more = f" ({len(values)} runs)" if len(values) < len(group) else ""
+        if len(values) == 1:
+            # One run has no spread to show: "± 0" would claim one.
+            return f"{values[0]:{fmt}}{more}"
         return f"{values.mean():{fmt}} ± {values.std():{fmt}}{more}"
 
     poses = any(r.get("final_angle_error") is not None for r in rows)
@@ -605,7 +609,7 @@ def summarise(rows: Sequence[dict]) -> str:
         checked = METHODS[method].has_lyapunov if method in METHODS else True
         lines.append(
             f"| {motion} | {method} | {len(group)} | {stat(group, 'velocity_mse_paper', '.3g')} "
-            f"| {PAPER_SNDS_MSE[motion] if motion in PAPER_SNDS_MSE else '-'} "
+            f"| {PAPER_SNDS_MSE[motion] if motion in PAPER_SNDS_MSE and method == 'snds' else '-'} "
             f"| {stat(group, 'dtw_paper', '.3g')} | {stat(group, 'train_seconds', '.1f')} "
             f"| {stat(group, 'train_cpu_seconds', '.1f')} "
             f"| {stat(group, 'converged_fraction', '.3f')} "
@@ -614,7 +618,17 @@ def summarise(rows: Sequence[dict]) -> str:
             f"| {stat(group, 'shortened_fraction', '.2f') if checked else 'n/a'} |"
             + (f" {_angle(group, stat)} |" if poses else "")
         )
-    lines += ["", f"Total decrease violations: {total}."]
+    lines += [
+        "",
+        f"Total decrease violations: {total}.",
+        "",
+        "Mean ± standard deviation over the runs (seeds) of each row; one run: its value. "
+        "Paper's SNDS MSE: the paper's Fig. 4, on the snds rows. Converged: the fraction of "
+        "the stability check's random starts that arrived at the target (worst run in "
+        "brackets). Shortened: the fraction of those rollouts in which the guarded Euler step "
+        "had to shorten a step, where plain Euler at the data's step would not have decreased "
+        "V (n/a: a method without V takes plain steps).",
+    ]
     return "\n".join(lines) + "\n"
 
 
@@ -720,7 +734,23 @@ def _save(fig, path: Path) -> Path:
 
 
 def plot_benchmark(rows: Sequence[dict], out: Path) -> list[Path]:
-    """Writes the sweep's figures into ``out``.
+    """Writes the sweep's figures (:func:`benchmark_figures`) into ``out``, then
+    ``streamlines.png``: one row per method, one column per motion, the lowest seed's model
+    (from ``out/models``) with its rollouts; the paper's Fig. 5 and 6. Skipped for runs whose
+    model is not there."""
+    out = Path(out)
+    paths = [_save(fig, out / name) for name, fig in benchmark_figures(rows).items()]
+    cells = {(motion, method): group for motion, method, group in _groups(rows)}
+    motions = list(dict.fromkeys(motion for motion, _ in cells))
+    methods = list(dict.fromkeys(r["method"] for r in rows))
+    panels = _panels(cells, out, motions, methods)
+    if any(panel is not None for row in panels for panel in row):
+        paths.append(plot_panels(panels, out / "streamlines.png"))
+    return paths
+
+
+def benchmark_figures(rows: Sequence[dict]) -> dict[str, Figure]:
+    """The sweep's figures by file name, each legend above its axes (it hides no bar or dot):
 
     * ``mse_violin.png``: log10 of the velocity MSE (paper scale), one violin per method and
       motion, every run a dot (a violin needs two runs or more); the paper's Fig. 4.
@@ -728,13 +758,7 @@ def plot_benchmark(rows: Sequence[dict], out: Path) -> list[Path]:
     * ``train_time.png``: train seconds, mean and std over seeds.
     * ``converged.png``: the fraction of random starts that reached the target, mean over
       seeds with the worst seed marked.
-    * ``streamlines.png``: one row per method, one column per motion, the lowest seed's model
-      (from ``out/models``) with its rollouts; the paper's Fig. 5 and 6. Skipped for runs
-      whose model is not there.
     """
-    from matplotlib.figure import Figure
-
-    out = Path(out)
     # The rows of each (motion, method) cell, each row's label read once.
     cells = {(motion, method): group for motion, method, group in _groups(rows)}
     motions = list(dict.fromkeys(motion for motion, _ in cells))
@@ -748,7 +772,7 @@ def plot_benchmark(rows: Sequence[dict], out: Path) -> list[Path]:
     def values(motion: str, method: str, key: str) -> np.ndarray:
         return np.array([r[key] for r in cells.get((motion, method), [])], dtype=float)
 
-    def violins(key: str, label: str, name: str) -> Path:
+    def violins(key: str, label: str) -> Figure:
         fig = Figure(figsize=size, layout="constrained")
         ax = fig.subplots()
         for i, method in enumerate(methods):
@@ -763,18 +787,22 @@ def plot_benchmark(rows: Sequence[dict], out: Path) -> list[Path]:
                     for body in parts["bodies"]:
                         body.set_facecolor(color)
                         body.set_alpha(0.4)
-                ax.scatter(np.full(len(logs), x), logs, s=10, color=color, zorder=3)
+                # One run per cell gives no violin: a larger mark, so it reads as a result.
+                mark = 10 if len(logs) > 1 else 36
+                ax.scatter(np.full(len(logs), x), logs, s=mark, color=color, zorder=3)
             ax.scatter([], [], color=color, label=method)
         ax.set_xticks(range(len(motions)), motions, rotation=30, ha="right")
         ax.set_xlim(-0.5, len(motions) - 0.5)
         ax.set_ylabel(label)
-        ax.legend()
-        return _save(fig, out / name)
+        if all(len(group) == 1 for group in cells.values()):
+            ax.set_title("one run per method and motion (no violins)", fontsize="small")
+        _legend_above(fig, ax)
+        return fig
 
-    paths = [
-        violins("velocity_mse_paper", "log10 velocity MSE (paper scale)", "mse_violin.png"),
-        violins("dtw_paper", "log10 DTW (paper scale)", "dtw_violin.png"),
-    ]
+    figures = {
+        "mse_violin.png": violins("velocity_mse_paper", "log10 velocity MSE (paper scale)"),
+        "dtw_violin.png": violins("dtw_paper", "log10 DTW (paper scale)"),
+    }
 
     fig = Figure(figsize=size, layout="constrained")
     ax = fig.subplots()
@@ -785,8 +813,8 @@ def plot_benchmark(rows: Sequence[dict], out: Path) -> list[Path]:
         ax.bar(offsets(i), means, width=width, yerr=stds, label=method, color=f"C{i}")
     ax.set_xticks(range(len(motions)), motions, rotation=30, ha="right")
     ax.set_ylabel("train seconds (mean ± std over seeds)")
-    ax.legend()
-    paths.append(_save(fig, out / "train_time.png"))
+    _legend_above(fig, ax)
+    figures["train_time.png"] = fig
 
     fig = Figure(figsize=size, layout="constrained")
     ax = fig.subplots()
@@ -800,13 +828,16 @@ def plot_benchmark(rows: Sequence[dict], out: Path) -> list[Path]:
     ax.set_xticks(range(len(motions)), motions, rotation=30, ha="right")
     ax.set_ylim(0, 1.05)
     ax.set_ylabel("converged fraction of random starts")
-    ax.legend(loc="lower right", fontsize="small")
-    paths.append(_save(fig, out / "converged.png"))
+    _legend_above(fig, ax)
+    figures["converged.png"] = fig
+    return figures
 
-    panels = _panels(cells, out, motions, methods)
-    if any(panel is not None for row in panels for panel in row):
-        paths.append(plot_panels(panels, out / "streamlines.png"))
-    return paths
+
+def _legend_above(fig, ax) -> None:
+    """The axes' legend above them, in the figure (:func:`snds.plotting.figure_legend`):
+    bars that reach 1 and dots anywhere on the scale stay in view."""
+    handles, labels = ax.get_legend_handles_labels()
+    figure_legend(fig, handles, labels, loc="outside upper center")
 
 
 def _panels(

@@ -8,11 +8,37 @@ import numpy as np
 import torch
 from dtaidistance import dtw_ndim
 
+from snds.arrival import ARRIVAL_TOLERANCE
 from snds.data.demonstrations import Split
 from snds.metrics import dtw, final_distance, frechet, swept_error_area, velocity_mse
 from snds.policy import Policy, float64_copy
-from snds.spaces import Space
+from snds.spaces import Phased, Space
 from snds.stability import CheckConfig, check_stability
+
+__all__ = [
+    "MAX_PATH_SAMPLES",
+    "RETRACE_DURATIONS",
+    "RETRACE_SAMPLES",
+    "RETRACE_WARNING",
+    "accuracy",
+    "evaluate",
+    "evaluation_demos",
+    "path_reference",
+    "reproduce",
+    "retrace",
+    "warnings",
+]
+
+#: Rollouts from the demonstrations' starts for :func:`retrace` run this many times each
+#: demonstration's duration: time for one that lags to finish, as a controller would let it.
+RETRACE_DURATIONS = 1.5
+#: Fewest samples of a demonstration and of the rollout's time steps in :func:`retrace`: a
+#: stroke of a few points is compared as the line through them, not with Euler steps as long
+#: as its samples' spacing.
+RETRACE_SAMPLES = 200
+#: A rollout that strays further than this from its demonstration (discrete Frechet distance,
+#: in extents) does not retrace it: :func:`warnings` says so.
+RETRACE_WARNING = 0.05
 
 
 def evaluation_demos(split: Split) -> list[int]:
@@ -28,39 +54,53 @@ def evaluation_demos(split: Split) -> list[int]:
 MAX_PATH_SAMPLES = 5000
 
 
-def path_reference(demo: Any, max_samples: int = MAX_PATH_SAMPLES) -> np.ndarray:
+def _samples(demo: Any, min_samples: int) -> int:
+    """How many samples :func:`path_reference` gives a demonstration."""
+    return min(max(len(demo.times), min_samples), MAX_PATH_SAMPLES)
+
+
+def path_reference(
+    demo: Any, max_samples: int = MAX_PATH_SAMPLES, *, min_samples: int = 0
+) -> np.ndarray:
     """A demonstration's states as the reproduction metrics see them, shape (T, dim): the
     samples themselves, or ``max_samples`` of them at uniform times when the demonstration is
-    longer (positions interpolated linearly, further coordinates such as a pose's
-    orientation taken from the sample at or just after each time)."""
+    longer, ``min_samples`` when it is shorter (positions interpolated linearly, further
+    coordinates such as a pose's orientation taken from the sample at or just after each
+    time)."""
     states = demo.states
-    if len(demo.times) <= max_samples:
+    count = min(max(len(demo.times), min_samples), max_samples)
+    if count == len(demo.times):
         return states
-    times = np.linspace(demo.times[0], demo.times[-1], max_samples)
+    times = np.linspace(demo.times[0], demo.times[-1], count)
     dim = demo.positions.shape[1]
     columns = [np.interp(times, demo.times, demo.positions[:, k]) for k in range(dim)]
     nearest = np.searchsorted(demo.times, times).clip(0, len(demo.times) - 1)
     return np.concatenate([np.stack(columns, axis=-1), states[nearest, dim:]], axis=1)
 
 
-def reproduce(policy: Policy, demos: Any, indices: list[int]) -> list[np.ndarray]:
-    """Euler rollouts along the policy's space from the starts of demonstrations, each as
-    long as its :func:`path_reference` with its mean step.
+def reproduce(
+    policy: Policy, demos: Any, indices: list[int], *, durations: float = 1.0, min_samples: int = 0
+) -> list[np.ndarray]:
+    """Euler rollouts along the policy's space from the starts of demonstrations, each with
+    the mean step of its :func:`path_reference` (of ``min_samples``) and ``durations`` times
+    as long.
 
     All starts are integrated as one batch (each row with its own step, and frozen once it has
     taken its demonstration's number of steps), so the cost is that of the longest one.
 
     Returns:
-        One rollout per index, shape (T_d, space.dim).
+        One rollout per index, shape (T_d, space.dim): T_d - 1 = ``durations`` x the steps of
+        its path_reference, rounded up.
     """
     if not indices:
         return []
     device = getattr(policy, "center", torch.empty(0)).device
     advance = policy.space.advance
     # The length of each path_reference, without resampling the demonstration to find it.
-    steps = [min(len(demos[i].times), MAX_PATH_SAMPLES) - 1 for i in indices]
-    durations = [demos[i].duration / k for i, k in zip(indices, steps)]
-    dt = torch.tensor(durations, dtype=torch.float64, device=device)
+    samples = [_samples(demos[i], min_samples) - 1 for i in indices]
+    periods = [demos[i].duration / k for i, k in zip(indices, samples)]
+    steps = [int(np.ceil(durations * k - 1e-9)) for k in samples]
+    dt = torch.tensor(periods, dtype=torch.float64, device=device)
     starts = np.stack([demos[i].states[0] for i in indices])
     x = torch.tensor(starts, dtype=torch.float64, device=device)
     remaining = torch.tensor(steps, device=device)
@@ -87,7 +127,9 @@ def _errors_along(space: Space, path: np.ndarray, reference: np.ndarray) -> np.n
     return errors.mean(dim=0).numpy()
 
 
-def accuracy(policy: Policy, demos: Any, split: Split) -> dict[str, float]:
+def accuracy(
+    policy: Policy, demos: Any, split: Split, *, paths: dict[int, np.ndarray] | None = None
+) -> dict[str, float]:
     """Velocity MSE on the test samples (also relative to their mean squared speed); DTW,
     Frechet distance, swept error area (2-D only) and final distance of the reproductions from
     the demonstrations' starts.
@@ -104,6 +146,8 @@ def accuracy(policy: Policy, demos: Any, split: Split) -> dict[str, float]:
         policy: The policy, in float64.
         demos: All demonstrations of the task (poses for a pose policy).
         split: The train / test split (test samples for MSE; held-out demos for DTW).
+        paths: Reproductions already rolled out (:func:`reproduce`), by demonstration index;
+            the others are rolled out here.
     """
     space = policy.space
     test = split.test()
@@ -120,7 +164,10 @@ def accuracy(policy: Policy, demos: Any, split: Split) -> dict[str, float]:
     speed, extent = demos.max_speed(), demos.extent()
     target = np.asarray(demos.target)
     indices = evaluation_demos(split)
-    paths = reproduce(policy, demos, indices)
+    known = paths or {}
+    missing = [i for i in indices if i not in known]
+    rolled = dict(zip(missing, reproduce(policy, demos, missing)))
+    paths = [known[i] if i in known else rolled[i] for i in indices]
     references = [path_reference(demos[i]) for i in indices]
     positions = [space.positions(p) for p in paths]
     reference_positions = [space.positions(r) for r in references]
@@ -158,6 +205,90 @@ def accuracy(policy: Policy, demos: Any, split: Split) -> dict[str, float]:
     return record
 
 
+def retrace(
+    policy: Policy, demos: Any, *, durations: float = RETRACE_DURATIONS
+) -> tuple[dict, dict[int, np.ndarray]]:
+    """How far rollouts from every demonstration's start stay from that demonstration.
+
+    Each rollout (:func:`reproduce`, with steps of its demonstration's period or shorter:
+    :data:`RETRACE_SAMPLES`) runs ``durations`` x its demonstration's duration; its
+    positions are compared with the demonstration's by the discrete Frechet distance
+    (:func:`snds.metrics.frechet`: the leash that walks both paths forward), in extents.
+
+    Returns:
+        The record: ``retrace_frechet_max`` and ``retrace_frechet_median`` over the
+        demonstrations, ``retrace_final_max`` (the largest distance of a rollout's end from
+        the target), all in extents, and ``retrace_durations``; and, by index, the first
+        duration of each rollout whose steps are :func:`accuracy`'s own (a demonstration of
+        :data:`RETRACE_SAMPLES` samples or more), which it then need not roll out again.
+    """
+    space, extent = policy.space, demos.extent()
+    indices = list(range(len(demos)))
+    paths = reproduce(policy, demos, indices, durations=durations, min_samples=RETRACE_SAMPLES)
+    target = space.positions(np.asarray(demos.target))
+    references = [path_reference(demos[i], min_samples=RETRACE_SAMPLES) for i in indices]
+    gaps = [frechet(space.positions(p), space.positions(r)) for p, r in zip(paths, references)]
+    ends = [final_distance(space.positions(p), target) for p in paths]
+    record = {
+        "retrace_frechet_max": float(np.max(gaps) / extent),
+        "retrace_frechet_median": float(np.median(gaps) / extent),
+        "retrace_final_max": float(np.max(ends) / extent),
+        "retrace_durations": durations,
+    }
+    # The same steps as accuracy's reproductions: their first duration is one.
+    prefixes = {
+        i: p[: _samples(demos[i], 0)]
+        for i, p in zip(indices, paths)
+        if _samples(demos[i], RETRACE_SAMPLES) == _samples(demos[i], 0)
+    }
+    return record, prefixes
+
+
+def warnings(record: dict, *, hint: bool = True) -> list[str]:
+    """What a user must know before trusting a model, one sentence each, from an
+    :func:`evaluate` record: rollouts that do not retrace the demonstrations, a stiff field,
+    starts that do not arrive, and decrease violations.
+
+    Arguments:
+        record: The record (its ``retrace_*`` figures and ``stability`` report).
+        hint: Whether to suggest a phase for rollouts that do not retrace (not for a policy
+            that has one, nor for behavioural cloning, whose rollouts stray for want of V).
+    """
+    said = []
+    worst = record.get("retrace_frechet_max")
+    if worst is not None and not worst <= RETRACE_WARNING:
+        advice = " (for paths that cross or wind, a phase helps: --phase-codes 3)" if hint else ""
+        said.append(
+            f"rollouts from the demonstrations' starts do not retrace them: Frechet distance "
+            f"up to {100 * worst:.3g} % of the extent (over {100 * RETRACE_WARNING:g} %){advice}"
+        )
+    end = record.get("retrace_final_max")
+    if end is not None and not end <= ARRIVAL_TOLERANCE:
+        said.append(
+            f"rollouts from the demonstrations' starts end up to {100 * end:.3g} % of the "
+            f"extent from the target after {record['retrace_durations']:g}x their duration"
+        )
+    stability = record.get("stability", {})
+    safe, dt = stability.get("largest_safe_dt"), stability.get("dt")
+    if safe is not None and dt is not None and safe == safe and safe < dt:
+        said.append(
+            f"stiff field: the largest safe Euler step {safe:.3g} s is below the data's step "
+            f"{dt:.3g} s (a controller at the data's rate needs the guarded step)"
+        )
+    rollouts, fraction = stability.get("rollouts"), stability.get("converged_fraction")
+    if rollouts and fraction is not None and fraction < 1:
+        missed = rollouts - round(fraction * rollouts)
+        stuck = stability.get("out_of_steps", 0)
+        said.append(
+            f"{missed} of {rollouts} random starts had not arrived after "
+            f"{stability['horizon']:.3g} s"
+            + (f" ({stuck} of them out of steps: the guard kept shortening them)" if stuck else "")
+        )
+    if stability.get("decrease_violations"):
+        said.append(f"V fails to decrease at {stability['decrease_violations']} sampled states")
+    return said
+
+
 def evaluate(
     policy: Policy, demos: Any, split: Split, *, check: CheckConfig = CheckConfig()
 ) -> dict:
@@ -170,6 +301,10 @@ def evaluate(
         check: The stability check's settings (its seed, sizes, grid starts).
     """
     policy64 = float64_copy(policy)
-    record = accuracy(policy64, demos, split)
+    retraced, paths = retrace(policy64, demos)
+    record = accuracy(policy64, demos, split, paths=paths)
+    record.update(retraced)
     record["stability"] = check_stability(policy64, demos, check).to_dict()
+    phased = isinstance(policy64.space, Phased)
+    record["warnings"] = warnings(record, hint=policy64.stable and not phased)
     return record

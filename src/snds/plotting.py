@@ -22,12 +22,14 @@ import torch
 from matplotlib import colors
 from matplotlib.figure import Figure
 
+from snds.arrival import ARRIVAL_TOLERANCE, arrival_time
 from snds.data.demonstrations import Demonstrations
 from snds.io import atomic_write
 from snds.obstacles import ModulatedPolicy, rollout_numpy_avoiding
 from snds.parallel import torch_threads
 from snds.policy import Policy
 from snds.rollout import rollout_numpy
+from snds.stability import CheckConfig
 
 FIGSIZE = (6.0, 4.5)  # plots against time or step
 AXES_INCHES = 4.6  # longer side of the axes of a plot in the plane
@@ -111,8 +113,9 @@ def plot_panels(
 
     Each panel shows the policy's streamlines, the demonstrations, rollouts from the
     demonstrations' starts (solid) and from ``random_starts`` uniform starts in the view
-    (dashed, the same starts for every panel of a column), each for twice the longest
-    demonstration. A policy that fails shows it: dashed paths that stop short of the target.
+    (dashed, the same starts for every panel of a column), each until it arrives
+    (:func:`rollouts_until_arrival`). A policy that fails shows it: dashed paths that stop
+    short of the target.
     The policies are evaluated with one torch thread (:func:`snds.parallel.torch_threads`):
     a rollout calls a small network on a few states thousands of times, which several
     threads slow down many times over on a busy machine.
@@ -148,11 +151,12 @@ def plot_panels(
                 starts[:, 0] = rng.uniform(x1[0], x1[-1], random_starts)
                 starts[:, 1] = rng.uniform(x2[0], x2[-1], random_starts)
                 column_starts[j] = starts
-            dt = demos.mean_dt()
-            steps = int(2 * demos.max_duration() / dt)
             demo_starts = np.stack([demo.positions[0] for demo in demos])
-            rollouts = rollout_numpy(policy, demo_starts, dt=dt, steps=steps)
-            perturbed = rollout_numpy(policy, column_starts[j], dt=dt, steps=steps)
+            # Until arrival, as every plot of a run (rollouts_until_arrival), in one batch.
+            both, _ = rollouts_until_arrival(
+                policy, demos, np.concatenate([demo_starts, column_starts[j]]), dt=demos.mean_dt()
+            )
+            rollouts, perturbed = both[: len(demo_starts)], both[len(demo_starts) :]
             _draw_field(ax, policy, x1, x2, points, density=0.9)
             _draw_paths(ax, demos, rollouts, perturbed, random_label="rollout from random start")
             ax.set_aspect("equal")
@@ -167,14 +171,7 @@ def plot_panels(
             if label not in labels:
                 handles.append(handle)
                 labels.append(label)
-    fig.legend(
-        handles,
-        labels,
-        loc="outside lower center",
-        ncol=len(labels),
-        frameon=False,
-        fontsize="small",
-    )
+    figure_legend(fig, handles, labels, loc="outside lower center")
     return _save(fig, path)
 
 
@@ -261,11 +258,13 @@ def plot_rollout_lyapunov(
     path: str | Path,
     *,
     perturbed: np.ndarray | None = None,
+    arrived: np.ndarray | None = None,
 ) -> Path:
     """V along rollouts against time, on a log axis: a stable policy makes each curve fall.
 
-    A curve ends where V drops below :data:`V_FLOOR`, i.e. where the rollout has reached the
-    target up to rounding; below that, V is rounding noise that would only clutter the plot.
+    A curve ends where the rollout arrived (``arrived``, marked with a dot), or where V drops
+    below :data:`V_FLOOR`, i.e. where the rollout has reached the target up to rounding;
+    below that, V is rounding noise that would only clutter the plot.
 
     Arguments:
         policy: A stable policy, float64 and in eval mode.
@@ -273,6 +272,8 @@ def plot_rollout_lyapunov(
         dt: Time step of the rollouts, in seconds.
         path: Where to write the PNG.
         perturbed: Rollouts from perturbed starts, same time step; dashed lines.
+        arrived: The step at which each rollout arrived (:func:`rollouts_until_arrival`), those
+            of ``rollouts`` then those of ``perturbed``, shape (B,); -1: not arrived.
 
     Returns:
         The path written.
@@ -283,9 +284,11 @@ def plot_rollout_lyapunov(
     _require_stable(policy)
     fig, ax = _figure()
     rises = total = 0
-    for group, color, style, label in (
-        (rollouts, ROLLOUT_COLOR, "-", "from demo start"),
-        (perturbed, PERTURBED_COLOR, "--", "from perturbed start"),
+    count = 0 if rollouts is None else len(rollouts)
+    ends = {} if arrived is None else {"solid": arrived[:count], "dashed": arrived[count:]}
+    for group, color, style, label, key in (
+        (rollouts, ROLLOUT_COLOR, "-", "from demo start", "solid"),
+        (perturbed, PERTURBED_COLOR, "--", "from perturbed start", "dashed"),
     ):
         if group is None or len(group) == 0:
             continue
@@ -300,8 +303,12 @@ def plot_rollout_lyapunov(
         times = dt * np.arange(length)
         for i, curve in enumerate(v):
             # Keep the first point below the floor so that each curve visibly reaches it.
-            arrived = np.flatnonzero(~above[i])
-            stop = arrived[0] + 1 if arrived.size else length
+            floor = np.flatnonzero(~above[i])
+            stop = floor[0] + 1 if floor.size else length
+            at = ends[key][i] if key in ends else -1
+            if at >= 0:
+                stop = min(stop, at + 1)
+                ax.plot(times[at], max(curve[at], V_FLOOR), "o", color=color, markersize=3)
             ax.plot(
                 times[:stop],
                 np.maximum(curve[:stop], V_FLOOR),
@@ -327,11 +334,42 @@ def plot_rollout_lyapunov(
     ax.set_xlabel("time [s]")
     ax.set_ylabel("V (model units)")
     verdict = "V decreases at every step" if rises == 0 else f"V rises at {rises} of {total} steps"
-    ax.set_title(f"Lyapunov function along rollouts: {verdict}", fontsize="medium")
+    until = "" if arrived is None else ", until arrival (dots)"
+    ax.set_title(f"V along rollouts{until}: {verdict}", fontsize="medium")
     ax.legend(frameon=False, loc="upper right", fontsize="small")
     ax.grid(True, which="major", color="0.9", linewidth=0.6)
     _despine(ax)
     return _save(fig, path)
+
+
+def rollouts_until_arrival(
+    policy: Policy, demos: Any, starts: np.ndarray, *, dt: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Euler rollouts at the data's step until every one has arrived
+    (:func:`snds.arrival.arrival_time`, within :data:`~snds.arrival.ARRIVAL_TOLERANCE` of
+    each error scale), in pieces of 1.5 longest-demonstration durations, at most the stability
+    check's cap (:attr:`~snds.stability.CheckConfig.horizon_factor` durations): every plot
+    of a run shows the same rollouts, to the same end.
+
+    Returns:
+        The rollouts, shape (B, T, space.dim), and the step at which each arrived, shape
+        (B,) (-1 for one that had not arrived at the cap).
+    """
+    space = policy.space
+    duration = demos.max_duration()
+    piece = max(1, int(1.5 * duration / dt))
+    cap = int(CheckConfig().horizon_factor * duration / dt)
+    target = torch.tensor(np.asarray(demos.target, dtype=np.float64))
+    scales = torch.as_tensor(space.error_scales(demos.extent()))
+    pieces = [rollout_numpy(policy, starts, dt=dt, steps=piece)]
+    while True:
+        states = np.concatenate(pieces, axis=1)
+        errors = space.errors(torch.as_tensor(states), target) / scales  # (B, T, k)
+        times = np.arange(states.shape[1])
+        steps = np.array([arrival_time(times, e.numpy(), ARRIVAL_TOLERANCE) for e in errors])
+        if not np.isnan(steps).any() or states.shape[1] - 1 >= cap:
+            return states, np.nan_to_num(steps, nan=-1).astype(int)
+        pieces.append(rollout_numpy(policy, states[:, -1], dt=dt, steps=piece)[:, 1:])
 
 
 def plot_all(
@@ -369,7 +407,6 @@ def plot_all(
     p = space.position_dim
     rng = np.random.default_rng(seed)
     dt = demos.mean_dt()
-    steps = int(1.5 * demos.max_duration() / dt)
     starts = np.stack([demo.states[0] for demo in demos])
     extent = demos.extent()
     low, high = _box(demos.positions(), space.positions(np.asarray(demos.target)), scale=1.5)
@@ -379,7 +416,9 @@ def plot_all(
     spread[:, :p] = rng.uniform(low, high, size=(6, p))
     perturbed_starts = np.concatenate([moved, spread])
     # One batch for both sets of starts: a step costs about the same for 7 states as for 20.
-    both = rollout_numpy(policy, np.concatenate([starts, perturbed_starts]), dt=dt, steps=steps)
+    both, arrived = rollouts_until_arrival(
+        policy, demos, np.concatenate([starts, perturbed_starts]), dt=dt
+    )
     rollouts, perturbed = both[: len(starts)], both[len(starts) :]
 
     paths = []
@@ -395,7 +434,12 @@ def plot_all(
             paths.append(plot_lyapunov(policy, demos, out / "lyapunov.png"))
         paths.append(
             plot_rollout_lyapunov(
-                policy, rollouts, dt, out / "rollout_lyapunov.png", perturbed=perturbed
+                policy,
+                rollouts,
+                dt,
+                out / "rollout_lyapunov.png",
+                perturbed=perturbed,
+                arrived=arrived,
             )
         )
     if p == 2 and not positions_only:
@@ -854,14 +898,30 @@ def _finish(
 def _legend(fig, ax) -> None:
     # Below the axes, so it never hides a streamline, a demonstration or the target.
     handles, labels = ax.get_legend_handles_labels()
-    fig.legend(
-        handles,
-        labels,
-        loc="outside lower center",
-        ncol=min(len(labels), 3),
-        frameon=False,
-        fontsize="small",
-    )
+    figure_legend(fig, handles, labels, loc="outside lower center", most_columns=3)
+
+
+def figure_legend(
+    fig: Figure, handles: list, labels: list[str], *, loc: str, most_columns: int | None = None
+):
+    """A legend of the whole figure outside its axes (``loc`` such as "outside lower
+    center", under constrained layout), in as many columns as fit the figure's width: it
+    hides no data and is not cut off at the figure's sides.
+
+    Returns:
+        The legend.
+    """
+    columns = min(len(labels), most_columns or len(labels))
+    width = fig.get_figwidth() * fig.dpi
+    while True:
+        legend = fig.legend(
+            handles, labels, loc=loc, ncol=max(columns, 1), frameon=False, fontsize="small"
+        )
+        fig.draw_without_rendering()
+        if columns <= 1 or legend.get_window_extent().width <= 0.98 * width:
+            return legend
+        legend.remove()
+        columns -= 1
 
 
 def _despine(ax) -> None:

@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from snds.arrival import ARRIVAL_TOLERANCE
 from snds.errors import ConfigError
 from snds.policy import FieldTerms, Policy, float64_copy
 from snds.rollout import guarded_step, policy_guard
@@ -36,9 +37,14 @@ class CheckConfig:
         grid: Start from a regular grid of positions over the box (k points per axis,
             k^n >= rollouts, corners included) instead of uniform random states.
         box_factor: Half-width of the box of starts, in extents.
-        horizon_factor: Rollout duration, in longest-demonstration durations.
+        horizon_factor: The cap on a rollout's duration, in longest-demonstration durations:
+            rollouts run until they arrive (and a policy with V until it has settled), at
+            most this long; the report gives their times to arrive.
         tolerance_factor: Arrival tolerance, in error scales (the extent for positions; pi
-            radians for angles).
+            radians for angles): :data:`snds.arrival.ARRIVAL_TOLERANCE`.
+        min_step_budget: Fewest integration steps a rollout may take before it counts as
+            still moving (see :func:`_roll_out_and_settle`): a step the guard shortens is one
+            step, so a stiff field runs out of steps before the cap.
         sample_box_factor: Half-width of the decrease samples' box, in extents.
         step_tolerance_factor: Local error allowed per adaptive step, in extents.
         seed: Seed of the random starts and samples.
@@ -51,7 +57,8 @@ class CheckConfig:
     grid: bool = False
     box_factor: float = 3.0
     horizon_factor: float = 10.0
-    tolerance_factor: float = 0.01
+    tolerance_factor: float = ARRIVAL_TOLERANCE
+    min_step_budget: int = 2000
     sample_box_factor: float = 10.0
     step_tolerance_factor: float = 3e-3
     seed: int = 0
@@ -87,8 +94,16 @@ class StabilityReport:
             the 20 largest clusters, largest first.
         still_moving: Rollouts outside the tolerance at the end that were still moving (too
             slow, or circling).
+        out_of_steps: Rollouts that had not arrived when their step budget ran out, before
+            the cap (the guard kept shortening their steps: a stiff field).
         median_time_to_converge: Median time (s) to enter the tolerance for good, over the
-            converged rollouts (NaN if none converged).
+            converged rollouts (NaN if none converged); the same as ``time_to_arrive_median``.
+        time_to_arrive_median: Median time to arrive (:func:`snds.arrival.arrival_time`), s,
+            over the rollouts that arrived (NaN if none did).
+        time_to_arrive_max: The longest time to arrive, s, over those that arrived.
+        duration: The longest demonstration's duration, s: the unit of the two below.
+        time_to_arrive_median_durations: ``time_to_arrive_median`` / ``duration``.
+        time_to_arrive_max_durations: ``time_to_arrive_max`` / ``duration``.
         samples_checked: States at which the decrease condition was checked (0 for a policy
             without a Lyapunov function).
         decrease_violations: States where grad V . pi > -a(x) beyond rounding error.
@@ -104,7 +119,9 @@ class StabilityReport:
         v_rises: Accepted steps at which V rose even after the guard's halvings (0 for a
             policy without V): the discrete decrease along the rollouts, as the robot moves.
         box: Half-width of the box of random starts, in user units.
-        horizon: Duration of each rollout, in seconds.
+        horizon: The cap on each rollout's duration, in seconds (``horizon_factor`` x
+            ``duration``); a rollout stops earlier once it has arrived and settled.
+        step_budget: The most integration steps of one rollout.
         dt: Time step of the rollouts, in seconds.
         tolerance: Distance counted as arrived, in user units.
         tolerances: The arrival tolerance of each error component (a rollout has converged
@@ -117,7 +134,13 @@ class StabilityReport:
     max_final_errors: dict
     spurious_attractors: list
     still_moving: int
+    out_of_steps: int
     median_time_to_converge: float
+    time_to_arrive_median: float
+    time_to_arrive_max: float
+    duration: float
+    time_to_arrive_median_durations: float
+    time_to_arrive_max_durations: float
     samples_checked: int
     decrease_violations: int
     largest_safe_dt: float
@@ -127,6 +150,7 @@ class StabilityReport:
     v_rises: int
     box: float
     horizon: float
+    step_budget: int
     dt: float
     tolerance: float
     tolerances: dict
@@ -254,18 +278,19 @@ def check_stability(
 ) -> StabilityReport:
     """Rolls out from random starts and checks the decrease condition on a dense sample.
 
-    One check for every state space (the policy's :attr:`~snds.policy.Policy.space`):
-    rollouts start in a box of half-width ``box_factor`` x the extent (the largest distance
-    of a demonstrated position from the target) around the target, with orientations uniform
-    over all of SO(3) for poses, and run for ``horizon_factor`` x the longest
-    demonstration's duration, adaptive Euler steps of at least the demonstrations' mean time
-    step along the space's :meth:`~snds.spaces.Space.advance`, guarded (see
-    :func:`snds.rollout.guarded_step`) for a policy with a Lyapunov function; the report
-    says in how many rollouts the guard had to shorten a step, and the largest step that is
-    safe along the rollouts. A rollout has converged if it ends within ``tolerance_factor``
-    x each error scale of the target (the extent; pi radians for an angle): the robot must
-    get there in useful time, not only asymptotically. Rollouts of a policy with a Lyapunov
-    function stop early once they are provably settled (see :func:`_roll_out_and_settle`).
+    One check for every state space (the policy's :attr:`~snds.policy.Policy.space`): rollouts
+    start in a box of half-width ``box_factor`` x the extent (the largest distance of a
+    demonstrated position from the target) around the target, with orientations uniform over all
+    of SO(3) for poses, and run until they arrive, for ``horizon_factor`` x the longest
+    demonstration's duration at most, adaptive Euler steps of at least the demonstrations' mean
+    time step along the space's :meth:`~snds.spaces.Space.advance`, guarded (see
+    :func:`snds.rollout.guarded_step`) for a policy with a Lyapunov function; the report gives
+    their times to arrive, says in how many rollouts the guard had to shorten a step, and the
+    largest step that is safe along the rollouts. A rollout has converged if it ends within
+    ``tolerance_factor`` x each error scale of the target (the extent; pi radians for an angle):
+    the robot must get there in useful time, not only asymptotically. Rollouts of a policy with
+    a Lyapunov function stop early once they are provably settled (see
+    :func:`_roll_out_and_settle`).
     Everything runs in float64.
 
     Arguments:
@@ -281,7 +306,8 @@ def check_stability(
     extent = demos.extent()
     target = np.asarray(demos.target, dtype=np.float64)
     dt = demos.mean_dt()
-    horizon = config.horizon_factor * demos.max_duration()
+    duration = demos.max_duration()
+    horizon = config.horizon_factor * duration
     half_width = config.box_factor * extent
     draw = space.grid if config.grid else space.uniform
     points = draw(target, half_width, config.rollouts, rng)
@@ -296,7 +322,9 @@ def check_stability(
     errors = arrivals.final_errors  # (B, k), in error scales
     outside = (errors > tolerance).any(dim=-1) | ~torch.isfinite(errors).all(dim=-1)
     attractors, moving = _stalled(policy, demos, arrivals.final_state[outside], extent=extent)
-    times = arrivals.arrival_time[~arrivals.arrival_time.isnan()]
+    times = arrivals.arrival_time[~outside & ~arrivals.arrival_time.isnan()]
+    median = float(times.median()) if len(times) else float("nan")
+    slowest = float(times.max()) if len(times) else float("nan")
     violations, checked = 0, 0
     safe_dt = safe_dt_rollouts = float("nan")
     if policy.stable:
@@ -327,7 +355,13 @@ def check_stability(
         },
         spurious_attractors=attractors,
         still_moving=moving,
-        median_time_to_converge=float(times.median()) if len(times) else float("nan"),
+        out_of_steps=int((arrivals.out_of_steps & outside).sum()),
+        median_time_to_converge=median,
+        time_to_arrive_median=median,
+        time_to_arrive_max=slowest,
+        duration=duration,
+        time_to_arrive_median_durations=median / duration,
+        time_to_arrive_max_durations=slowest / duration,
         samples_checked=checked,
         decrease_violations=violations,
         largest_safe_dt=safe_dt,
@@ -337,6 +371,7 @@ def check_stability(
         v_rises=arrivals.v_rises,
         box=half_width,
         horizon=horizon,
+        step_budget=arrivals.budget,
         dt=dt,
         tolerance=float(tolerance * scales[0]),
         tolerances={
@@ -423,6 +458,8 @@ class _Arrivals:
     shortened: torch.Tensor  # (B,) bool: plain Euler at dt would not decrease V on the way
     visited: torch.Tensor  # (M, dim), states along the rollouts (every ``every`` steps)
     steps: int  # integration steps of the longest rollout
+    out_of_steps: torch.Tensor  # (B,) bool: stopped by the step budget before the horizon
+    budget: int  # the step budget of one rollout
     v_rises: int  # accepted steps at which V rose after every halving
 
 
@@ -441,27 +478,28 @@ def _roll_out_and_settle(
     r"""Adaptive guarded Euler rollouts that stop integrating each start once it has settled.
 
     Each rollout takes Euler steps along the policy's space (:meth:`~snds.spaces.Space.advance`)
-    whose length follows the local error: the estimate
-    :math:`e = \tfrac{h}{2} |\pi(x_{k+1}) - \pi(x_k)|` (the leading term of Euler's local
-    error, from the velocity the next step needs anyway; each component in its scale,
-    :meth:`~snds.spaces.Space.tangent_scales`) is kept below ``step_tolerance_factor``
-    extents by rejecting a step that exceeds it and by growing or shrinking the next one
-    as :math:`h \sqrt{\text{tol} / e}`, between the data's step ``dt`` (always accepted, so
-    the check is never slower than fixed steps of dt) and horizon / 50. Where the field
-    is smooth (far out, and on the final approach) steps grow far beyond the data's period; in
-    the demonstrations' bends they stay near it; no step moves a state by more than 5% of
-    its distance to the target, unless it is no longer than dt. A policy with a Lyapunov
-    function also takes the guarded step (:func:`snds.rollout.guarded_step`, Armijo's
-    condition on V), so V falls at every accepted step. The sublevel set {V < c} of
-    :func:`settle_level` lies inside the model-coordinate ball whose image is within half of
-    every tolerance (:meth:`~snds.policy.Policy.model_scale`), and guarded steps never leave
-    it: a start whose state enters it is settled and no longer integrated, so the check costs
-    the time rollouts take to arrive. A policy without a Lyapunov function integrates to the
-    horizon.
+    whose length follows the local error: the estimate :math:`e = \tfrac{h}{2} |\pi(x_{k+1}) -
+    \pi(x_k)|` (the leading term of Euler's local error, from the velocity the next step needs
+    anyway; each component in its scale, :meth:`~snds.spaces.Space.tangent_scales`) is kept
+    below ``step_tolerance_factor`` extents by rejecting a step that exceeds it and by growing
+    or shrinking the next one as :math:`h \sqrt{\text{tol} / e}`, between the data's step ``dt``
+    (always accepted, so the check is never slower than fixed steps of dt; horizon / 500 for
+    data sampled coarser) and horizon / 50. Where the field is smooth (far out, and on the final
+    approach) steps grow far beyond the data's period; in the demonstrations' bends they stay
+    near it; no step moves a state by more than 5% of its distance to the target, unless it is
+    no longer than dt. A policy with a Lyapunov function also takes the guarded step
+    (:func:`snds.rollout.guarded_step`, Armijo's condition on V), so V falls at every accepted
+    step. The sublevel set {V < c} of :func:`settle_level` lies inside the model-coordinate ball
+    whose image is within half of every tolerance (:meth:`~snds.policy.Policy.model_scale`), and
+    guarded steps never leave it: a start whose state enters it is settled and no longer
+    integrated, so the check costs the time rollouts take to arrive. A policy without a Lyapunov
+    function integrates to the horizon.
 
-    A rollout takes at most horizon / dt accepted steps, as many as fixed steps of dt would
-    (a step the guard shortens counts as one; a step rejected for its error does not), so a
-    field the guard must shorten everywhere costs no more than it did with fixed steps.
+    A rollout takes at most as many accepted steps as fixed steps of the shortest standard
+    step (the smaller of dt and horizon / 50) would take to the horizon, and at least
+    ``min_step_budget`` (a step the guard shortens counts as one; a step rejected for its
+    error does not), so a field the guard must shorten everywhere costs a bounded time; the
+    rollouts stopped by this budget before the horizon are marked ``out_of_steps``.
     States are recorded at the start and every ``every`` steps (``visited``); ``shortened``
     marks the rollouts at one of whose recorded states plain Euler at the data's step ``dt``
     would not have met the guard's condition.
@@ -474,12 +512,15 @@ def _roll_out_and_settle(
     tangent_scales = torch.as_tensor(space.tangent_scales(extent), **like)
     tolerance = config.tolerance_factor
     step_tolerance, max_step = config.step_tolerance_factor, horizon / 50
+    # The shortest standard step: the data's, unless the data are sampled coarser than
+    # horizon / 500 (strokes of a few points), whose Euler steps would misplace arrival.
+    min_step = min(dt, horizon / 500)
 
     def errors(states: torch.Tensor) -> torch.Tensor:
         return space.errors(states, target) / error_scales
 
     time = torch.zeros(count, **like)
-    h = torch.full_like(time, dt)
+    h = torch.full_like(time, min_step)
     # Time since which each rollout has been within the tolerance (NaN while outside).
     arrival = torch.zeros_like(time)
     active = torch.arange(count, device=x.device)
@@ -500,7 +541,7 @@ def _roll_out_and_settle(
     arrival[(errors(x) > tolerance).any(dim=-1)] = float("nan")
     # The budget of fixed steps at dt: steps the guard shortens still count as steps, so a
     # field so stiff that the guard shrinks every step ends after as many steps as before.
-    budget = int(np.ceil(horizon / dt))
+    budget = max(int(np.ceil(horizon / min_step)), config.min_step_budget)
     taken = torch.zeros(count, dtype=torch.long, device=x.device)
     steps = 0
     while len(active):
@@ -515,11 +556,12 @@ def _roll_out_and_settle(
                 bad = ~((after <= before - required) & (after < before)) & (before > 0)
                 shortened[active[bad]] = True
         # No step moves a state by more than 5% of its distance to the target (or takes
-        # longer than dt): relative accuracy on the final approach, and arrival times resolved
-        # to a twentieth of the time left. The last step ends exactly at the horizon.
+        # longer than dt, or than horizon / 50 for data sampled coarser than that): relative
+        # accuracy on the final approach, and arrival times resolved to a twentieth of the
+        # time left. The last step ends exactly at the horizon.
         distance = errors(xa).max(dim=-1).values
         reach = 0.05 * distance / (va / tangent_scales).norm(dim=-1)
-        ha = torch.minimum(ha, reach.nan_to_num(nan=dt).clamp_min(dt))
+        ha = torch.minimum(ha, reach.nan_to_num(nan=dt).clamp_min(min_step))
         ha = torch.minimum(ha, horizon - time[active])
         candidate = space.advance(xa, ha, va)
         if value is not None:
@@ -547,11 +589,11 @@ def _roll_out_and_settle(
         error = 0.5 * ha * ((v_new - va) / tangent_scales).norm(dim=-1)
         # A step no longer than the data's is always accepted: at worst the check integrates
         # as plain (guarded) Euler at dt, never slower.
-        accept = (error <= step_tolerance) | (ha <= dt)
+        accept = (error <= step_tolerance) | (ha <= min_step)
         # A non-finite error (a diverging field without V) shrinks the step, to dt at least.
         grow = (0.9 * (step_tolerance / error).sqrt()).nan_to_num(nan=0.2).clamp(0.2, 4.0)
         proposed = torch.where(accept, ha * grow, ha * grow.clamp_max(0.9))
-        h[active] = proposed.clamp(min(dt, max_step), max_step)
+        h[active] = proposed.clamp(min_step, max_step)
         done = active[accept]
         x[done], velocity[done] = candidate[accept], v_new[accept]
         time[done] = time[done] + ha[accept]
@@ -571,4 +613,15 @@ def _roll_out_and_settle(
         if level is not None:
             finished = finished | (value[active] < level)
         active = active[~finished]
-    return _Arrivals(x, errors(x), arrival, shortened, torch.cat(visited), steps, int(rises))
+    out_of_steps = (taken >= budget) & (time < horizon * (1 - 1e-12))
+    return _Arrivals(
+        x,
+        errors(x),
+        arrival,
+        shortened,
+        torch.cat(visited),
+        steps,
+        out_of_steps,
+        budget,
+        int(rises),
+    )

@@ -5,7 +5,10 @@ from __future__ import annotations
 
 import io
 import os
+import re
+import shutil
 import signal
+import subprocess
 import time
 import zipfile
 from pathlib import Path
@@ -73,7 +76,17 @@ def test_no_path_outside_the_static_files_is_served(client, path: str) -> None:
 def test_a_request_for_another_host_name_is_refused(client) -> None:
     # A page elsewhere that rebinds its DNS name to 127.0.0.1 must not reach the API.
     answer = client.get("/api/health", headers={"host": "evil.example"})
-    assert (answer.status_code, answer.text) == (400, "Invalid host header")
+    # The JSON of every refusal, as docs/bad-input.md promises.
+    assert (answer.status_code, answer.json()) == (
+        400,
+        {
+            "error": "host 'evil.example' is not served here (only 127.0.0.1, ::1, [::1], "
+            "localhost); open the page at its address"
+        },
+    )
+    # The loopback's names, with a port, are served.
+    for host in ("localhost:8765", "127.0.0.1", "[::1]:8765"):
+        assert client.get("/api/health", headers={"host": host}).status_code == 200
 
 
 # --- Training, streaming, results -------------------------------------------------------------
@@ -400,7 +413,7 @@ BAD_INPUT = [
         TRAIN,
         _json('{"strokes": [[[0, 0, 0], [1e400, 1, 0.1]]]}'),
         422,
-        "stroke 0, point 1: non-finite value inf",
+        "the number 1e400 is beyond a float's range (1.8e308)",
     ),
     (
         "coordinate beyond the limit",
@@ -443,6 +456,50 @@ BAD_INPUT = [
         {"json": {"strokes": [_stroke()], "settings": {"lr": 1}}},
         422,
         "unknown setting 'lr' (known: steps, seed, rollouts, samples)",
+    ),
+    (
+        "a 400-digit setting",
+        TRAIN,
+        _json('{"strokes": [], "settings": {"steps": ' + "9" * 400 + "}}"),
+        422,
+        "a number of 400 characters (999999999999... (400 characters)); at most 32 are read",
+    ),
+    (
+        "a coordinate of 309 digits (beyond a float)",
+        TRAIN,
+        _json('{"strokes": [[[0, 0, 0], [1' + "0" * 308 + ", 1, 1]]]}"),
+        422,
+        "a number of 309 characters (100000000000... (309 characters)); at most 32 are read",
+    ),
+    (
+        "a coordinate of 5000 digits (beyond Python's int parsing)",
+        TRAIN,
+        _json('{"strokes": [[[0, 0, 0], [' + "7" * 5000 + ", 1, 1]]]}"),
+        422,
+        "a number of 5000 characters (777777777777... (5000 characters)); at most 32 are read",
+    ),
+    (
+        "a target far from the strokes' ends",
+        TRAIN,
+        {"json": {"strokes": [_stroke()], "target": [999999, 999999]}},
+        422,
+        "stroke 0 ends 1.414e+06 from the target, 100% of the strokes' extent 1.414e+06; ends "
+        "must lie within 25% of it (as for snds train): move the target (the star) to where the "
+        "strokes end, or end the strokes at it",
+    ),
+    (
+        "a rollout start of 400 digits",
+        "/api/jobs/{job}/rollout",
+        _json('{"start": [' + "1" * 400 + ", 0]}"),
+        422,
+        "a number of 400 characters (111111111111... (400 characters)); at most 32 are read",
+    ),
+    (
+        "field bounds beyond a float",
+        "/api/jobs/{job}/field",
+        _json('{"bounds": [0, 1e400, 0, 1]}'),
+        422,
+        "the number 1e400 is beyond a float's range (1.8e308)",
     ),
     (
         "setting out of range",
@@ -583,3 +640,41 @@ def test_bad_input(client, trained, path: str, request_: dict, status: int, reas
     assert (answer.status_code, answer.json()) == (status, {"error": reason})
     # Refused before any work: no job was started.
     assert {j.id for j in client.app.state.jobs.running()} == running
+
+
+def _readme_example() -> tuple[str, str]:
+    """The jq program and the request body template of the README's curl example."""
+    readme = (Path(__file__).resolve().parents[2] / "README.md").read_text()
+    program = re.search(r"strokes=\$\(jq -nc '(.*?)'\)", readme, re.DOTALL)
+    body = re.search(r'-d "(\{\\"strokes\\": \$strokes.*?\})" \| jq', readme)
+    assert program and body, "the README's curl example changed shape: update this test"
+    return program.group(1), body.group(1).replace('\\"', '"')
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(shutil.which("jq") is None, reason="the README's example needs jq")
+def test_the_readme_curl_example_trains_a_model_whose_check_passes(client, helpers) -> None:
+    # GIVEN exactly the README's strokes (its jq program) and its request body
+    program, template = _readme_example()
+    strokes = subprocess.run(
+        ["jq", "-nc", program], check=True, capture_output=True, text=True
+    ).stdout.strip()
+    body = template.replace("$strokes", strokes)
+    # WHEN they are trained with the page's defaults (snds train's) and the README's settings
+    answer = client.post("/api/train", content=body, headers={"content-type": "application/json"})
+    assert answer.status_code == 202
+    status = helpers.wait_for(client, answer.json()["id"], {"done", "error"}, timeout=600)
+    # THEN the stability check passes: every start arrives, V decreases everywhere checked,
+    # and the rollouts from the strokes' starts retrace them
+    assert status["state"] == "done", status.get("error")
+    metrics = status["metrics"]
+    stability = metrics["stability"]
+    assert stability["converged_fraction"] == 1.0 and stability["decrease_violations"] == 0
+    assert stability["still_moving"] == 0 and stability["time_to_arrive_max"] < stability["horizon"]
+    assert metrics["retrace_frechet_max"] <= 0.05
+
+
+def test_the_favicon_is_served(client) -> None:
+    answer = client.get("/favicon.ico")
+    assert answer.status_code == 200 and answer.headers["content-type"] == "image/svg+xml"
+    assert answer.text.startswith("<svg")

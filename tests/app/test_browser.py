@@ -56,7 +56,7 @@ def url():
 def page(url):
     with sync_api.sync_playwright() as playwright:
         browser = launch(playwright)
-        page = browser.new_page(viewport={"width": 1240, "height": 800})
+        page = browser.new_page(viewport={"width": 1280, "height": 800})
         page.goto(f"{url}/?{QUERY}")
         yield page
         browser.close()
@@ -101,19 +101,39 @@ def test_draw_train_push_and_compare_with_bc(page, shots: Path, helpers) -> None
     assert page.evaluate("sndsApp.strokes.length") == 3
     assert page.evaluate("sndsApp.strokes.every(s => s.length > 30)")
     page.screenshot(path=str(shots / "app_strokes.png"))
+    place = "(({x, y, width}) => ({x, y, width}))(document.querySelector('aside')"
+    place += ".getBoundingClientRect())"
+    panel = page.evaluate(place)
+    rows = page.evaluate("[...document.querySelectorAll('#metrics tr')].map(r => r.offsetHeight)")
+    button = page.locator("#undo").bounding_box()["height"]
 
     # WHEN the page trains on them
     page.click("#train")
+    # THEN the Train button keeps its one line while training (no "Train again" wrap)
+    assert page.locator("#train").bounding_box()["height"] == button
     page.wait_for_function("sndsApp.drawn.snds", timeout=120_000)
     page.wait_for_function("sndsApp.jobs.snds.status.state === 'done'", timeout=120_000)
     # THEN the field and V are drawn, with the stability check's numbers
     assert page.evaluate("sndsApp.jobs.snds.field.V !== null")
     check = page.evaluate("sndsApp.jobs.snds.status.metrics.stability")
     assert check["converged_fraction"] == 1.0 and check["decrease_violations"] == 0
-    assert page.text_content("#snds-converged") == f"100.0% of {check['rollouts']}"
+    assert page.text_content("#snds-converged") == f"{check['rollouts']} of {check['rollouts']}"
     assert page.text_content("#snds-violations") == f"0 of {check['samples_checked']}"
     assert page.text_content("#snds-safe").endswith(" s")
-    assert page.text_content("#progress-label").startswith("SNDS: done in ")
+    assert page.text_content("#snds-shortened").endswith(" %")
+    assert page.text_content("#snds-arrival").endswith("×")
+    # the safe step beside the data's step; the job's time split into training and check
+    assert page.text_content("#data-step").startswith("data step ")
+    label = page.text_content("#progress-label")
+    assert (
+        label.startswith("SNDS: done: ")
+        and " s training + " in label
+        and label.endswith(" s check")
+    )
+    # and the panel did not move nor re-wrap its table
+    assert page.evaluate(place) == panel
+    filled = page.evaluate("[...document.querySelectorAll('#metrics tr')].map(r => r.offsetHeight)")
+    assert filled == rows
 
     # WHEN a click starts a rollout and the moving point is pushed away
     page.mouse.click(*_screen(page, [-85.0, 55.0]))
@@ -133,16 +153,42 @@ def test_draw_train_push_and_compare_with_bc(page, shots: Path, helpers) -> None
 
     # WHEN behavioural cloning is trained on the same strokes (the toggle)
     page.click("#bc")
+    # THEN while BC trains, SNDS's field stays on the board and Run still works on it
+    page.wait_for_function("sndsApp.jobs.bc && sndsApp.jobs.bc.status.state === 'training'")
+    assert page.evaluate("!!sndsApp.jobs.snds.layer && !sndsApp.drawn.bc")
+    assert not page.locator("#mode-run").is_disabled()
+    assert page.text_content("#progress-label").startswith("BC: ")
+    page.screenshot(path=str(shots / "app_bc_training.png"))
     page.wait_for_function("sndsApp.drawn.bc", timeout=120_000)
     page.wait_for_function("sndsApp.jobs.bc.status.state === 'done'", timeout=120_000)
     # THEN its field has no V, and its check is shown beside SNDS's
     assert page.evaluate("sndsApp.jobs.bc.field.V === null")
     assert page.text_content("#bc-violations") == "no V"
-    assert page.text_content("#bc-converged").endswith(f"% of {check['rollouts']}")
+    assert page.text_content("#bc-converged").endswith(f" of {check['rollouts']}")
+    assert page.evaluate(place) == panel
+    filled = page.evaluate("[...document.querySelectorAll('#metrics tr')].map(r => r.offsetHeight)")
+    assert filled == rows
     page.mouse.click(*_screen(page, [-85.0, 55.0]))
     page.wait_for_function("sndsApp.rollout && sndsApp.rollout.status === 'running'")
     time.sleep(1.5)
     page.screenshot(path=str(shots / "app_bc.png"))
+
+    # WHEN BC is toggled off: SNDS's field and SNDS's own progress label are back
+    page.click("#bc")
+    assert page.text_content("#progress-label").startswith("SNDS: done: ")
+    assert page.evaluate("sndsApp.showBC") is False
+    # AND at 800 px wide, the panels sit side by side below the board, at its full width
+    page.set_viewport_size({"width": 800, "height": 800})
+    page.evaluate("window.dispatchEvent(new Event('resize'))")
+    board, aside = page.locator("#board").bounding_box(), page.locator("aside").bounding_box()
+    assert aside["y"] >= board["y"] + board["height"] and aside["width"] >= 0.9 * board["width"]
+    tops = page.evaluate("[...document.querySelectorAll('aside section')].map(s => s.offsetTop)")
+    assert tops[0] == tops[1]
+    page.screenshot(path=str(shots / "app_trained_800.png"), full_page=True)
+    page.click("#bc")  # BC is trained: shown at once
+    assert page.text_content("#progress-label").startswith("BC: done: ")
+    page.screenshot(path=str(shots / "app_bc_800.png"), full_page=True)
+    page.set_viewport_size({"width": 1280, "height": 800})
 
     # AND the page's downloads: the model folder, its ONNX file, the strokes' CSV
     with page.expect_download(timeout=120_000) as download:

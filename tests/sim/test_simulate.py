@@ -12,11 +12,13 @@ import pytest
 import torch
 from test_plotting import assert_png
 
+from snds.arrival import PATH_TOLERANCE, distance_to_path
 from snds.cli import main
 from snds.models import save_model
 from snds.policy import PolicyConfig
 from snds.sim import Push, SimConfig, simulate
 from snds.sim.robots import get_robot
+from snds.sim.run import Placement, default_scale, rest_of_path, unpushed_path
 
 from conftest import SMALL, make_policy, spiral_demos
 
@@ -48,8 +50,6 @@ def policy(demos):
 
 def push_away(robot: str, policy, start: np.ndarray, size: float) -> tuple[float, ...]:
     """A displacement of ``size`` metres from the target towards the start, in the plane."""
-    from snds.sim.run import Placement, default_scale
-
     placement = Placement.for_task(
         get_robot(robot), policy.normalization.center, default_scale(get_robot(robot), policy)
     )
@@ -64,7 +64,7 @@ def pushed_run(policy, demos):
     return simulate(policy, start, SimConfig(robot="iiwa", push=push, time_limit=20.0))
 
 
-def test_arm_reaches_the_target_after_a_push(pushed_run, demos) -> None:
+def test_arm_reaches_the_target_after_a_push(pushed_run, policy, demos) -> None:
     run = pushed_run
     config = run.config
     distance = np.linalg.norm(run.positions - run.placement.origin, axis=1)
@@ -81,10 +81,14 @@ def test_arm_reaches_the_target_after_a_push(pushed_run, demos) -> None:
     assert np.linalg.norm(run.push_offset) == pytest.approx(0.04, abs=1e-3)
     pushed = int(np.searchsorted(run.times, run.push_time))
     assert distance[pushed] > distance[pushed - 1] + 0.03
-    # and the arm made up for it: recovery measured, before arrival
+    # and the arm made up for it: back on its unpushed path (snds.arrival), before arrival
     assert run.recovery_time is not None
-    assert 0 < run.recovery_time < run.times[-1] - run.push_time
-    assert distance[pushed + round(run.recovery_time * config.control_rate)] <= distance[pushed - 1]
+    assert 0 <= run.recovery_time < run.times[-1] - run.push_time
+    path = rest_of_path(unpushed_path(policy, start, dt=0.01, steps=3000), run.states[pushed - 1])
+    off = distance_to_path(run.states, path)
+    back = pushed + round(run.recovery_time * config.control_rate)
+    assert (off[back:] <= run.path_tolerance).all()
+    assert run.off_path == pytest.approx(off[pushed:].max())
 
 
 def test_joint_limits_hold_along_the_joint_path(pushed_run) -> None:
@@ -183,3 +187,56 @@ def test_cli_simulate_bad_input_exits_2(model_dir, tmp_path: Path, capsys) -> No
         main(["simulate", str(model), "--robot", "ur5"])
     assert exit_.value.code == 2
     assert "Traceback" not in capsys.readouterr().err
+
+
+def test_cli_recovery_after_a_sideways_push_is_the_return_to_the_path(
+    policy, model_dir, tmp_path: Path, capsys
+) -> None:
+    # GIVEN a push across the path, of 15 % of the extent, at step 40 (issue 44, item 7: the
+    # old "as close to the target as before" called such a push recovered at once)
+    model, data = model_dir
+    start = spiral_demos()[0].positions[0]
+    robot = get_robot("iiwa")
+    placement = Placement.for_task(robot, policy.target, default_scale(robot, policy))
+    path = unpushed_path(policy, start, dt=0.01, steps=3000)
+    along = path[41] - path[40]
+    across = np.array([-along[1], along[0]]) / np.linalg.norm(along)
+    extent = float(policy.extents()[0])
+    push = placement.velocity_to_world(0.15 * extent * across)
+    out = tmp_path / "out"
+    spec = "40," + ",".join(f"{d:.6f}" for d in push)
+    args = ["simulate", str(model), "--data", str(data), "--out", str(out), "--frames", "0"]
+    assert main([*args, "--push", spec, "--time-limit", "20"]) == 0
+    record = json.loads((out / "sim.json").read_text())
+    # THEN recovery is the time from the push until the path is within 5 % of the extent
+    states, times = np.array(record["task_path"]), np.array(record["time"])
+    pushed = int(np.searchsorted(times, record["push_time_s"]))
+    off = distance_to_path(states, rest_of_path(path, states[pushed - 1]))
+    assert off[pushed] > 0.1 * extent  # the push took it off the path
+    assert record["path_tolerance"] == pytest.approx(PATH_TOLERANCE * extent)
+    recovery = record["recovery_time_s"]
+    assert recovery is not None and recovery > 0
+    back = pushed + round(recovery / 0.01)
+    assert (off[back:] <= record["path_tolerance"]).all() and off[back - 1] > record[
+        "path_tolerance"
+    ]
+    # and the line says how far off the path the push took it and when it was back on it
+    line = capsys.readouterr().out
+    assert f"back on it (within {record['path_tolerance']:.3g} units, 5 % of the extent)" in line
+    assert f"{recovery:.2f} s later" in line and f"up to {record['off_path']:.3g} units" in line
+
+
+def test_a_3d_model_with_a_phase_is_simulated_and_photographed(tmp_path: Path) -> None:
+    # GIVEN an untrained 3-D model with a phase of 3 codes (its demonstrations' states are 6
+    # numbers: render_frames placed them as 3-D positions and failed, issue 39)
+    import snds
+    from snds.phase import Phase
+    from snds.sim.plots import plot_frames, render_frames
+
+    demos = Phase(codes=3, seed=0).apply(spiral_demos(dim=3))
+    policy = snds.make_policy(demos, config=FAST, seed=0).double().eval()
+    run = simulate(policy, demos[0].states[0], SimConfig(robot="iiwa", time_limit=0.3))
+    # THEN the run's frames show the demonstrations' positions, and the strip is written
+    frames, steps = render_frames(run, demos, count=2, width=80, height=60)
+    assert len(frames) == 2 and np.std(frames[-1]) > 5
+    assert_png(plot_frames(run, frames, steps, tmp_path / "frames.png"))

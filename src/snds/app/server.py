@@ -43,9 +43,9 @@ import numpy as np
 import torch
 from starlette.applications import Starlette
 from starlette.concurrency import run_in_threadpool
+from starlette.datastructures import Headers
 from starlette.exceptions import HTTPException
 from starlette.middleware import Middleware
-from starlette.middleware.trustedhost import TrustedHostMiddleware
 from starlette.requests import Request
 from starlette.responses import FileResponse, Response, StreamingResponse
 from starlette.routing import Mount, Route
@@ -64,6 +64,7 @@ from snds.app.strokes import (
     write_csv,
 )
 from snds.app.worker import Job, Jobs
+from snds.arrival import ARRIVAL_TOLERANCE
 from snds.cli import _build_parser
 from snds.data import Normalization
 from snds.errors import SNDSError
@@ -73,7 +74,15 @@ from snds.models import load_model
 from snds.policy import PolicyConfig, StablePolicy, float64_copy
 from snds.rollout import guarded_step, policy_guard
 
-__all__ = ["LOCAL_HOSTS", "METHOD_FLAGS", "STATIC", "create_app", "serve"]
+__all__ = [
+    "LOCAL_HOSTS",
+    "MAX_NUMBER_CHARACTERS",
+    "METHOD_FLAGS",
+    "STATIC",
+    "LocalHostsOnly",
+    "create_app",
+    "serve",
+]
 
 STATIC = Path(__file__).parent / "static"
 #: Host names a server bound to the loopback answers to (others are refused, which stops a
@@ -89,6 +98,9 @@ SETTING_FLAGS = {
     "rollouts": "--rollouts",
     "samples": "--samples",
 }
+#: Longest number (characters) a request body may hold: a float64 needs at most 24
+#: (``-1.2345678901234567e-308``); longer is a mistake or an attack.
+MAX_NUMBER_CHARACTERS = 32
 #: The strokes' CSV in a job's model folder: the file ``snds train --data`` read.
 STROKES_FILE = "strokes.csv"
 
@@ -136,11 +148,39 @@ def _refuse_constant(name: str) -> None:
     raise RequestError(400, f"malformed JSON: {name} is not a JSON number")
 
 
+def _shown(text: str) -> str:
+    """A number's text as a message quotes it: whole if short, else its start and length."""
+    return text if len(text) <= 20 else f"{text[:12]}... ({len(text)} characters)"
+
+
+def _json_number(text: str) -> int | float:
+    """Every number of a request body, parsed in one place (:func:`json.loads`'s hooks):
+    at most :data:`MAX_NUMBER_CHARACTERS` characters and finite as a float, so that no field
+    meets a number that overflows a float (``OverflowError``) or an integer too long for
+    Python to read (``ValueError`` beyond 4,300 digits); each field then checks its range."""
+    if len(text) > MAX_NUMBER_CHARACTERS:
+        raise RequestError(
+            422,
+            f"a number of {len(text)} characters ({_shown(text)}); at most "
+            f"{MAX_NUMBER_CHARACTERS} are read",
+        )
+    number = float(text)
+    if not math.isfinite(number):
+        raise RequestError(422, f"the number {_shown(text)} is beyond a float's range (1.8e308)")
+    is_integer = not any(c in text for c in ".eE")
+    return int(text) if is_integer else number
+
+
 async def _json_body(request: Request, limits: Limits) -> dict:
     """The request's JSON object (400 if it is not one)."""
     raw = await _body(request, limits, media="application/json")
     try:
-        body = json.loads(raw.decode("utf-8"), parse_constant=_refuse_constant)
+        body = json.loads(
+            raw.decode("utf-8"),
+            parse_constant=_refuse_constant,
+            parse_int=_json_number,
+            parse_float=_json_number,
+        )
     except UnicodeDecodeError:
         raise RequestError(400, "malformed JSON: not UTF-8") from None
     except json.JSONDecodeError as error:
@@ -217,8 +257,8 @@ def _load_results(job: Job) -> None:
             "dt": demos.mean_dt(),
             "duration": demos.max_duration(),
             "extent": extent,
-            # As the stability check counts a rollout converged.
-            "tolerance": 0.01 * extent,
+            # As the stability check counts a rollout arrived (snds.arrival).
+            "tolerance": ARRIVAL_TOLERANCE * extent,
         },
     )
 
@@ -359,6 +399,40 @@ def _zip_model(folder: Path, name: str) -> bytes:
 # --- The application ---------------------------------------------------------------------------
 
 
+def _host_name(header: str) -> str:
+    """The host name of a ``Host`` header, without its port (``[::1]:8765`` -> ``[::1]``)."""
+    if header.startswith("["):
+        return header[: header.find("]") + 1]
+    return header.split(":")[0]
+
+
+class LocalHostsOnly:
+    """ASGI middleware that answers a request for another host name with the JSON 400 of
+    every refusal (``{"error": ...}``): a page elsewhere that rebinds its DNS name to the
+    loopback (DNS rebinding) does not reach the API.
+
+    Arguments:
+        app: The application.
+        allowed: Host names answered (``"*"``: any).
+    """
+
+    def __init__(self, app: Any, allowed: tuple[str, ...] | list[str]) -> None:
+        self.app = app
+        self.allowed = set(allowed)
+
+    async def __call__(self, scope: dict, receive: Any, send: Any) -> None:
+        if scope["type"] in ("http", "websocket") and "*" not in self.allowed:
+            host = _host_name(Headers(scope=scope).get("host", ""))
+            if host not in self.allowed:
+                reason = (
+                    f"host {_shown(host)!r} is not served here (only "
+                    f"{', '.join(sorted(self.allowed))}); open the page at its address"
+                )
+                await _json({"error": reason}, 400)(scope, receive, send)
+                return
+        await self.app(scope, receive, send)
+
+
 def create_app(
     *,
     limits: Limits = LIMITS,
@@ -393,6 +467,10 @@ def create_app(
 
     async def index(request: Request) -> Response:
         return FileResponse(STATIC / "index.html")
+
+    async def favicon(request: Request) -> Response:
+        # Browsers ask for /favicon.ico whatever the page links; the page's icon is an SVG.
+        return FileResponse(STATIC / "favicon.svg", media_type="image/svg+xml")
 
     async def health(request: Request) -> Response:
         return _json(
@@ -567,6 +645,7 @@ def create_app(
     job_path = "/api/jobs/{job:str}"
     routes = [
         Route("/", index),
+        Route("/favicon.ico", favicon),
         Route("/api/health", health),
         Route("/api/limits", get_limits),
         Route("/api/train", train, methods=["POST"]),
@@ -584,7 +663,7 @@ def create_app(
     ]
     return Starlette(
         routes=routes,
-        middleware=[Middleware(TrustedHostMiddleware, allowed_hosts=list(allowed_hosts))],
+        middleware=[Middleware(LocalHostsOnly, allowed=tuple(allowed_hosts))],
         exception_handlers={RequestError: refused, HTTPException: http_error},
         lifespan=lifespan,
     )

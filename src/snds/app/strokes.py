@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from snds.data import Demonstrations, load_demonstrations
+from snds.data import MAX_END_SPREAD, Demonstrations, load_demonstrations
 from snds.errors import DataError
 from snds.io import atomic_write
 
@@ -205,8 +205,26 @@ def parse_strokes(body: dict, limits: Limits = LIMITS) -> Strokes:
         times.append(points[:, 2] - points[0, 2])
     raw = body.get("target")
     target = positions[0][-1].copy() if raw is None else parse_target(raw, limits)
+    _check_end_spread(positions, target)
     moved = tuple(_end_at(p, t, target) for p, t in zip(positions, times))
     return Strokes(moved, tuple(times), target)
+
+
+def _check_end_spread(positions: list[np.ndarray], target: np.ndarray) -> None:
+    """Refuses strokes whose ends lie further from the target than ``snds train`` accepts
+    (:data:`snds.data.MAX_END_SPREAD` of the extent, the largest distance of a point from the
+    target): the ramp that moves each end onto the target would bend a stroke out of shape."""
+    ends = np.array([np.linalg.norm(p[-1] - target) for p in positions])
+    extent = max(float(np.linalg.norm(p - target, axis=-1).max()) for p in positions)
+    worst = int(ends.argmax())
+    if extent > 0 and ends[worst] > MAX_END_SPREAD * extent:
+        raise RequestError(
+            422,
+            f"stroke {worst} ends {ends[worst]:.4g} from the target, {ends[worst] / extent:.0%} "
+            f"of the strokes' extent {extent:.4g}; ends must lie within "
+            f"{MAX_END_SPREAD:.0%} of it (as for snds train): move the target (the star) to "
+            "where the strokes end, or end the strokes at it",
+        )
 
 
 def _end_at(positions: np.ndarray, times: np.ndarray, target: np.ndarray) -> np.ndarray:

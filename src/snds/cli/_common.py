@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import zipfile
 from pathlib import Path
 
 import torch
@@ -17,7 +18,7 @@ from snds.data import (
     split_samples,
 )
 from snds.data.options import ReadOptions
-from snds.errors import ConfigError, SNDSError
+from snds.errors import ConfigError, ModelFileError, SNDSError
 from snds.models import load_model
 from snds.obstacles import Scene, load_scene, parse_obstacle, parse_workspace
 from snds.phase import Phase
@@ -91,6 +92,7 @@ def _check_config(args: argparse.Namespace) -> CheckConfig:
 def _model_and_data(args: argparse.Namespace) -> tuple[Policy, dict, Demonstrations]:
     """A saved model, its record, and the demonstrations it was trained on (or those that
     ``--motion`` / ``--data`` name), in the model's space: poses for a pose model."""
+    _refuse_zip(Path(args.model))
     policy, description = load_model(args.model)
     recorded = description.get("data") or {}
     poses = isinstance(policy.space, SE3)
@@ -109,6 +111,20 @@ def _model_and_data(args: argparse.Namespace) -> tuple[Policy, dict, Demonstrati
             f"the data has dimension {width}, the model in {args.model} {policy.space.dim}"
         )
     return policy, description, demos
+
+
+def _refuse_zip(path: Path) -> None:
+    """A zipped model folder (the page's Model .zip) is refused with the command that unzips
+    it: the commands read and write the folder's files in place."""
+    if not (path.is_file() and zipfile.is_zipfile(path)):
+        return
+    with zipfile.ZipFile(path) as archive:
+        folders = {Path(name).parts[0] for name in archive.namelist() if len(Path(name).parts) > 1}
+    folder = next(iter(folders)) if len(folders) == 1 else "FOLDER"
+    raise ModelFileError(
+        f"{path}: a zip archive, not a model folder; unzip it first: unzip {path} -d "
+        f"{path.parent} and pass {path.parent / folder}"
+    )
 
 
 def _refuse_obstacles(policy: Policy, command: str) -> None:
@@ -135,29 +151,58 @@ def _write_plots(
 
 
 def _summarise(out: Path, metrics: dict) -> None:
+    """Prints the one-line summary of an evaluation (``snds train``, ``snds evaluate``)."""
+    print(f"{out}: {summary(metrics)}")
+
+
+def summary(metrics: dict) -> str:
+    """The one-line summary of an :func:`snds.evaluate.evaluate` record: fit, retracing,
+    arrival from the check's starts, the decrease check, stiffness, then its warnings."""
     stability = metrics["stability"]
     seconds = metrics.get("train_seconds")
-    timing = f"trained in {seconds:.1f} s, " if seconds is not None else ""
-    angles = (
-        f"orientation error {metrics['angle_error_along']:.4f} rad along the path, "
-        f"{metrics['final_angle_error']:.4f} rad at the end, "
-        if "angle_error_along" in metrics
-        else ""
+    parts = [f"trained in {seconds:.3g} s"] if seconds is not None else []
+    fit = (
+        f"velocity MSE {metrics['velocity_mse_paper']:.3g} (paper scale), "
+        f"DTW {metrics['dtw_paper']:.3g} (paper scale)"
     )
-    print(
-        f"{out}: {timing}velocity MSE {metrics['velocity_mse_paper']:.4f} (paper scale), "
-        f"DTW {metrics['dtw_paper']:.4f} (paper scale), {angles}"
-        f"converged {stability['converged_fraction']:.3f} of {stability['rollouts']} rollouts, "
+    if "angle_error_along" in metrics:
+        fit += (
+            f", orientation error {metrics['angle_error_along']:.3g} rad along the path, "
+            f"{metrics['final_angle_error']:.3g} rad at the end"
+        )
+    parts.append(fit)
+    if "retrace_frechet_max" in metrics:
+        parts.append(
+            f"from the demonstrations' starts Frechet {100 * metrics['retrace_frechet_max']:.3g} "
+            f"% of the extent at worst, {100 * metrics['retrace_frechet_median']:.3g} % median"
+        )
+    parts.append(_arrival_summary(stability))
+    parts.append(
         f"{stability['decrease_violations']} decrease violations in "
-        f"{stability['samples_checked']} samples" + _guard_summary(stability)
+        f"{stability['samples_checked']} samples"
     )
+    if stability.get("integrator") == "guarded euler":
+        parts.append(
+            f"largest safe Euler step {stability['largest_safe_dt']:.3g} s "
+            f"(data: {stability['dt']:.3g} s), guard shortened steps in "
+            f"{100 * stability['shortened_fraction']:.3g} % of rollouts"
+        )
+    parts += [f"WARNING: {warning}" for warning in metrics.get("warnings", [])]
+    return "; ".join(parts)
 
 
-def _guard_summary(stability: dict) -> str:
-    if stability.get("integrator") != "guarded euler":
-        return ""
-    return (
-        f"; largest safe Euler step {stability['largest_safe_dt']:.3g} s "
-        f"(data: {stability['dt']:.3g} s), guard shortened steps in "
-        f"{stability['shortened_fraction']:.0%} of rollouts"
-    )
+def _arrival_summary(stability: dict) -> str:
+    """'arrived from N of M random starts, median ... s (...x the longest demonstration)'."""
+    rollouts = stability["rollouts"]
+    arrived = round(stability["converged_fraction"] * rollouts)
+    text = f"arrived from {arrived} of {rollouts} random starts"
+    median = stability.get("time_to_arrive_median")
+    if arrived and median is not None:
+        text += (
+            f" in {median:.3g} s median ({stability['time_to_arrive_median_durations']:.3g}x "
+            f"the longest demonstration), {stability['time_to_arrive_max']:.3g} s at most "
+            f"({stability['time_to_arrive_max_durations']:.3g}x)"
+        )
+    if arrived < rollouts:
+        text += f", {stability['still_moving']} still moving at {stability['horizon']:.3g} s"
+    return text

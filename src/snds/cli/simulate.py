@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from snds.arrival import PATH_TOLERANCE
 from snds.cli._args import _data_arguments, _obstacle_arguments
 from snds.cli._common import _data_source, _model_and_data, _scene
 from snds.errors import SNDSError
@@ -69,6 +70,19 @@ def register(commands: argparse._SubParsersAction) -> None:
     )
     _obstacle_arguments(parser)
     parser.set_defaults(run=run)
+
+
+def recovery_text(result) -> str:
+    """'up to D units (M mm) off its path, back on it (within T units) S s later' of a
+    pushed run (:func:`snds.arrival.recovery_time`)."""
+    scale = result.placement.scale
+    text = (
+        f"up to {result.off_path:.3g} units ({1000 * scale * result.off_path:.3g} mm) off its path"
+    )
+    within = f"within {result.path_tolerance:.3g} units, {100 * PATH_TOLERANCE:g} % of the extent"
+    if result.recovery_time is None:
+        return f"{text}, not back on it ({within}) by the end"
+    return f"{text}, back on it ({within}) {result.recovery_time:.2f} s later"
 
 
 def _push(text: str):
@@ -136,11 +150,6 @@ def run(args: argparse.Namespace) -> int:
         if result.drives_orientation:
             line += f" and {result.final_orientation_error:.4f} rad"
         if result.push_time is not None:
-            recovery = (
-                "never recovered"
-                if result.recovery_time is None
-                else f"recovered in {result.recovery_time:.2f} s"
-            )
-            line += f"; pushed at {result.push_time:.2f} s, {recovery}"
+            line += f"; pushed at {result.push_time:.2f} s, {recovery_text(result)}"
         print(line)
     return 0

@@ -75,8 +75,10 @@ def render_frames(
     with Arm(get_robot(result.config.robot), gravity=False) as arm:
         arm.add_floor()
         if demos is not None:
+            dim = placement.target.size
             for demo in demos:
-                beads = demo.positions[:: max(1, len(demo.positions) // 60)]
+                # A phase model's demonstrations carry the phase after the positions.
+                beads = demo.positions[:: max(1, len(demo.positions) // 60), :dim]
                 arm.add_markers(
                     np.array([placement.to_world(x) for x in beads]), radius=0.004, rgba=GREY
                 )
@@ -202,7 +204,7 @@ def _draw_error(
                 result.push_time + result.recovery_time,
                 color=PERTURBED_COLOR,
                 alpha=0.12,
-                label="recovery",
+                label="back on the path",
             )
     ax.set_xlabel("time (s)")
     ax.legend(frameon=False, fontsize="small")
@@ -220,7 +222,7 @@ def _headline(result: SimResult) -> str:
     if result.drives_orientation:
         text += f" and {result.final_orientation_error:.3f} rad"
     if result.recovery_time is not None:
-        text += f", recovered {result.recovery_time:.2f} s after the push"
+        text += f", back on its path {result.recovery_time:.2f} s after the push"
     if result.obstacle_clearance is not None:
         text += f"; clearance {1000 * result.obstacle_clearance:.1f} mm"
         if result.contact_steps is not None:

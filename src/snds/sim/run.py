@@ -33,6 +33,7 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
+from snds.arrival import PATH_TOLERANCE, distance_to_path, recovery_time
 from snds.obstacles import Scene, avoid_step, modulate_twist, step_fraction
 from snds.phase import phase_step
 from snds.policy import Policy, float64_copy
@@ -577,9 +578,15 @@ class SimResult:
         final_orientation_error: Angle to the goal orientation at the end, radians.
         push_time: When the push happened, seconds (None without one).
         push_offset: The end effector's actual displacement by the push, metres (3,).
-        recovery_time: Seconds from the push until the end effector is again as close to
-            the target as it was just before the push (0 for a push towards the target);
-            None without a push, or if it never is.
+        recovery_time: Seconds from the push until the end effector is back on its path
+            for good (:func:`snds.arrival.recovery_time`): within ``path_tolerance`` of the
+            rest of the policy's own rollout from the same start without the push (from where
+            the push took the tool, :func:`rest_of_path`); None without a push, or if it
+            never is.
+        path_tolerance: The distance to the path counted as on it, task units
+            (:data:`snds.arrival.PATH_TOLERANCE` x the demonstrations' extent).
+        off_path: The largest distance of the end effector from that path after the push,
+            task units (None without a push).
         obstacle_clearance: Smallest distance of the tool point to an obstacle's physical
             shape (or a workspace wall) over the run, metres (None without obstacles).
         arm_obstacle_distance: Smallest distance of any link of the arm to an obstacle's
@@ -607,6 +614,8 @@ class SimResult:
     push_time: float | None
     push_offset: np.ndarray | None
     recovery_time: float | None
+    path_tolerance: float | None = None
+    off_path: float | None = None
     obstacle_clearance: float | None = None
     arm_obstacle_distance: float | None = None
     contact_steps: int | None = None
@@ -649,6 +658,8 @@ class SimResult:
             "push_time_s": self.push_time,
             "push_offset_m": None if self.push_offset is None else self.push_offset.tolist(),
             "recovery_time_s": self.recovery_time,
+            "path_tolerance": self.path_tolerance,
+            "off_path": self.off_path,
             "obstacle_clearance_m": self.obstacle_clearance,
             "arm_obstacle_distance_m": self.arm_obstacle_distance,
             "contact_steps": self.contact_steps,
@@ -727,6 +738,7 @@ def simulate(policy: Policy, start: np.ndarray, config: SimConfig) -> SimResult:
         orientations_ = np.array(orientations)
         angles = np.array([_angle(o, goal) for o in orientations_])
         distance = float(np.linalg.norm(positions_[-1] - placement.origin))
+        result_states = np.array([placement.to_task(p) for p in positions_])
         return SimResult(
             config=config,
             placement=placement,
@@ -735,7 +747,7 @@ def simulate(policy: Policy, start: np.ndarray, config: SimConfig) -> SimResult:
             times=np.array(times),
             positions=positions_,
             orientations=orientations_,
-            states=np.array([placement.to_task(p) for p in positions_]),
+            states=result_states,
             orientation_errors=angles,
             joints=np.array(joints),
             joint_lower=arm.lower.copy(),
@@ -747,7 +759,7 @@ def simulate(policy: Policy, start: np.ndarray, config: SimConfig) -> SimResult:
             final_orientation_error=float(angles[-1]),
             push_time=push_time,
             push_offset=push_offset,
-            recovery_time=_recovery_time(positions_, placement.origin, np.array(times), push_time),
+            **_recovery(policy, start, result_states, np.array(times), push_time, dt),
             **_obstacle_record(config, placement, positions_, bodies, contacts, arm_distance),
         )
 
@@ -808,15 +820,57 @@ def _controller(arm: Arm, twist: np.ndarray, q: np.ndarray, dt: float) -> np.nda
     return np.clip(qdot, low, high)
 
 
-def _recovery_time(
-    positions: np.ndarray, origin: np.ndarray, times: np.ndarray, push_time: float | None
-) -> float | None:
-    """Seconds from the push until the distance to the target is back to its pre-push value."""
+def _recovery(
+    policy: Policy,
+    start: np.ndarray,
+    states: np.ndarray,
+    times: np.ndarray,
+    push_time: float | None,
+    dt: float,
+) -> dict:
+    """The recovery after a push (the fields of :class:`SimResult`): the time until the
+    measured path (task positions, (T, n)) is back on the rest of the path the policy takes
+    from the same start without the push (:func:`rest_of_path`), within
+    :data:`~snds.arrival.PATH_TOLERANCE` of the extent."""
     if push_time is None:
-        return None
-    index = int(np.searchsorted(times, push_time))
-    if index == 0 or index >= len(times):
-        return None
-    distance = np.linalg.norm(positions - origin, axis=1)
-    back = np.nonzero(distance[index:] <= distance[index - 1])[0]
-    return float(times[index + back[0]] - push_time) if back.size else None
+        return {"recovery_time": None}
+    tolerance = PATH_TOLERANCE * float(policy.extents()[0])
+    after = times >= push_time
+    path = rest_of_path(
+        unpushed_path(policy, start, dt=dt, steps=len(times) - 1), states[~after][-1]
+    )
+    return {
+        "recovery_time": recovery_time(
+            times, states, path, push_time=push_time, tolerance=tolerance
+        ),
+        "path_tolerance": tolerance,
+        "off_path": float(distance_to_path(states[after], path).max()) if after.any() else 0.0,
+    }
+
+
+def rest_of_path(path: np.ndarray, position: np.ndarray) -> np.ndarray:
+    """The part of a path (S, n) from its sample nearest to ``position`` (n,) on: where the
+    motion was when it was pushed, so that coming back near a part already passed (a loop, an
+    earlier leg) is not counted as being back on the path."""
+    return path[int(np.linalg.norm(path - position, axis=-1).argmin()) :]
+
+
+@torch.no_grad()
+def unpushed_path(policy: Policy, start: np.ndarray, *, dt: float, steps: int) -> np.ndarray:
+    """The positions (T, n) of the policy's own rollout from a start, as the commander drives
+    it without a push: each step the velocity :func:`~snds.rollout.safe_velocity` gives for a
+    period dt, at most ``steps`` steps, stopping within 1e-4 of the extent of the target."""
+    space = policy.space
+    target = space.positions(policy.target)
+    close = 1e-4 * float(policy.extents()[0])
+    x = torch.tensor(np.asarray(start, dtype=np.float64))[None]
+    states = [x[0].numpy().copy()]
+    step = torch.full((1,), dt, dtype=torch.float64)
+    for _ in range(steps):
+        velocity = safe_velocity(policy, x, dt)[0]
+        x = space.advance(x, step, velocity)
+        states.append(x[0].numpy().copy())
+        position = space.positions(states[-1])
+        if not np.isfinite(position).all() or np.linalg.norm(position - target) <= close:
+            break
+    return space.positions(np.array(states))

@@ -134,6 +134,18 @@
     $("progress-label").textContent = label;
   }
 
+  // A job's progress, kept with it and shown while it is the one the BC box selects.
+  function jobProgress(job, fraction, label) {
+    job.progress = [fraction, label];
+    if (labelJob() === job) progress(fraction, label);
+  }
+
+  function showProgress() {
+    const job = labelJob();
+    if (job && job.progress) progress(...job.progress);
+    else progress(0, "not trained");
+  }
+
   // --- Training -----------------------------------------------------------------------------
 
   let stream = null;
@@ -180,22 +192,25 @@
       if (status.state === "training") {
         const total = status.total || 1;
         const loss = status.loss == null ? "" : `, loss ${status.loss.toExponential(2)}`;
-        progress(status.step / total, `${name}: step ${status.step} of ${status.total || "?"}${loss}`);
+        jobProgress(job, status.step / total, `${name}: step ${status.step} of ${status.total || "?"}${loss}`);
       } else if (status.state === "checking") {
-        progress(1, `${name}: trained; checking stability...`);
+        jobProgress(job, 1, `${name}: trained; checking stability...`);
       }
       if (status.result && !job.result) {
         job.result = status.result;
         loadField(job);
       }
       if (status.state === "done") {
-        progress(1, `${name}: done in ${status.seconds.toFixed(1)} s`);
+        // The job's time is training, then the stability check (and saving): say which is which.
+        const training = status.metrics && status.metrics.train_seconds;
+        const split = training == null ? ` in ${status.seconds.toFixed(1)} s` : `: ${training.toFixed(1)} s training + ${(status.seconds - training).toFixed(1)} s check`;
+        jobProgress(job, 1, `${name}: done${split}`);
         say(job.method === "bc"
           ? "BC trained: click to start it anywhere, and compare."
           : "Trained. Click anywhere to start the policy; drag the moving point to push it.");
         showMetrics();
       } else if (status.state === "error") {
-        progress(0, `${name}: failed`);
+        jobProgress(job, 0, `${name}: failed`);
         say(status.error, true);
         document.body.dataset.state = "error";
       }
@@ -231,7 +246,7 @@
     job.layerMs = performance.now() - before;
     app.drawn[job.method] = true;
     app.timings[job.method].drawn = performance.now();
-    if (job.method === "snds") setMode("run");
+    if (currentJob() === job) setMode("run");
     document.body.dataset.state = "trained";
     updateButtons();
     draw();
@@ -385,7 +400,15 @@
 
   // --- Drawing the board --------------------------------------------------------------------
 
+  // The job whose field is shown: BC once its field is drawn; until then (BC training) SNDS's
+  // stays on the board, and Run keeps working on it.
   function currentJob() {
+    const bc = app.jobs.bc;
+    return app.showBC && bc && bc.layer ? bc : app.jobs.snds;
+  }
+
+  // The job the progress bar speaks for: the one the BC box selects.
+  function labelJob() {
     return app.jobs[app.showBC ? "bc" : "snds"];
   }
 
@@ -399,6 +422,41 @@
     ctx.beginPath();
     points.forEach((p, k) => { const [px, py] = toPixels(p); k ? ctx.lineTo(px, py) : ctx.moveTo(px, py); });
     ctx.stroke();
+    ctx.restore();
+  }
+
+  // A stroke's direction: a dot at its start and arrowheads at a third and two thirds of its
+  // length (pixels), pointing the way it was drawn.
+  function directions(points, color) {
+    if (points.length < 2) return;
+    const pixels = points.map(toPixels);
+    const lengths = [0];
+    for (let k = 1; k < pixels.length; k++) {
+      lengths.push(lengths[k - 1] + Math.hypot(pixels[k][0] - pixels[k - 1][0], pixels[k][1] - pixels[k - 1][1]));
+    }
+    const total = lengths[lengths.length - 1];
+    ctx.save();
+    ctx.fillStyle = color;
+    ctx.beginPath();
+    ctx.arc(pixels[0][0], pixels[0][1], 4.5, 0, 2 * Math.PI);
+    ctx.fill();
+    if (total < 30) { ctx.restore(); return; }
+    for (const share of [1 / 3, 2 / 3]) {
+      const at = share * total;
+      let k = 1;
+      while (k < pixels.length - 1 && lengths[k] < at) k += 1;
+      const [ax, ay] = pixels[k - 1];
+      const [bx, by] = pixels[k];
+      const s = (at - lengths[k - 1]) / Math.max(1e-9, lengths[k] - lengths[k - 1]);
+      const [cx, cy] = [ax + s * (bx - ax), ay + s * (by - ay)];
+      const angle = Math.atan2(by - ay, bx - ax);
+      ctx.beginPath();
+      ctx.moveTo(cx + 6 * Math.cos(angle), cy + 6 * Math.sin(angle));
+      ctx.lineTo(cx - 6 * Math.cos(angle - 0.6), cy - 6 * Math.sin(angle - 0.6));
+      ctx.lineTo(cx - 6 * Math.cos(angle + 0.6), cy - 6 * Math.sin(angle + 0.6));
+      ctx.closePath();
+      ctx.fill();
+    }
     ctx.restore();
   }
 
@@ -430,7 +488,11 @@
     ctx.clearRect(0, 0, w, h);
     const job = currentJob();
     if (job && job.layer) ctx.drawImage(job.layer, 0, 0, w, h);
-    for (const stroke of app.strokes) path(ramped(stroke), { color: "#1d2733", width: 3 });
+    for (const stroke of app.strokes) {
+      const points = ramped(stroke);
+      path(points, { color: "#1d2733", width: 3 });
+      directions(points, "#1d2733");
+    }
     if (app.drawing) path(app.drawing, { color: "#1d2733", width: 3 });
     if (job && job.result && job.layer) {
       for (const r of job.result.reproductions) path(r, { color: "#e8710a", width: 2, dash: [6, 4] });
@@ -454,7 +516,7 @@
     if (app.showBC && job) {
       ctx.fillStyle = "rgba(150, 40, 40, 0.85)";
       ctx.font = "600 14px system-ui, sans-serif";
-      ctx.fillText("BC: no stability guarantee", 12, 22);
+      ctx.fillText(job.method === "bc" ? "BC: no stability guarantee" : "BC training; SNDS shown until it is done", 12, 22);
     }
   }
 
@@ -644,7 +706,7 @@
     const snds = app.jobs.snds;
     const shown = currentJob();
     $("train").disabled = !app.strokes.length;
-    $("train").textContent = busy ? "Train again" : "Train";
+    $("train").title = busy ? "train again on the strokes as they are (cancels the running job)" : "train a stable policy on the strokes";
     $("undo").disabled = !app.strokes.length;
     $("clear").disabled = !app.strokes.length;
     $("mode-run").disabled = !(shown && shown.layer);
@@ -656,6 +718,7 @@
 
   function fmt(value, digits = 3) {
     if (value == null) return "–";
+    if (value === 0) return "0";
     return Math.abs(value) >= 1e-3 && Math.abs(value) < 1e4 ? value.toPrecision(digits) : value.toExponential(digits - 1);
   }
 
@@ -665,11 +728,27 @@
       const m = job && job.status.metrics;
       const s = m && m.stability;
       const set = (name, text) => { $(`${method}-${name}`).textContent = text; };
-      set("converged", s ? `${(100 * s.converged_fraction).toFixed(1)}% of ${s.rollouts}` : "–");
+      const arrived = s ? Math.round(s.converged_fraction * s.rollouts) : 0;
+      set("converged", s ? `${arrived} of ${s.rollouts}` : "–");
+      set("arrival", s && arrived ? `${fmt(s.time_to_arrive_median, 2)} s, ${fmt(s.time_to_arrive_median_durations, 2)}×` : "–");
+      set("retrace", m && m.retrace_frechet_max != null ? `${fmt(100 * m.retrace_frechet_max, 2)} %` : "–");
       set("violations", s ? (s.samples_checked ? `${s.decrease_violations} of ${s.samples_checked}` : "no V") : "–");
-      set("safe", s ? (s.largest_safe_dt == null ? "no V" : `${fmt(s.largest_safe_dt)} s`) : "–");
+      set("safe", s ? (s.largest_safe_dt == null ? "no V" : `${fmt(s.largest_safe_dt, 2)} s`) : "–");
+      set("shortened", s ? (s.largest_safe_dt == null ? "no guard" : `${fmt(100 * s.shortened_fraction, 2)} %`) : "–");
       set("mse", m ? fmt(m.velocity_mse_paper) : "–");
       set("time", m && m.train_seconds != null ? `${m.train_seconds.toFixed(1)} s` : "–");
+    }
+    const shown = Object.values(app.jobs).find((job) => job && job.status.metrics);
+    $("data-step").textContent = shown ? `data step ${fmt(shown.status.metrics.stability.dt, 2)} s; longest stroke ${fmt(shown.status.metrics.stability.duration, 2)} s` : "";
+    const warnings = $("warnings");
+    warnings.replaceChildren();
+    for (const method of ["snds", "bc"]) {
+      const m = app.jobs[method] && app.jobs[method].status.metrics;
+      for (const text of (m && m.warnings) || []) {
+        const item = document.createElement("li");
+        item.textContent = `${method.toUpperCase()}: ${text}`;
+        warnings.appendChild(item);
+      }
     }
   }
 
@@ -704,6 +783,8 @@
     rolloutToken += 1;
     const bc = app.jobs.bc;
     if (app.showBC && (!bc || ["error", "cancelled"].includes(bc.status.state))) train("bc");
+    else showProgress();
+    if (currentJob() && currentJob().layer) setMode(app.mode);
     updateButtons();
     draw();
   };
