@@ -103,11 +103,16 @@ def test_a_phase_follows_a_pose_and_runs_to_zero():
     assert policy.space == Phased(SE3(), 2) and policy.dim == 8
 
 
-def test_start_state_takes_the_nearest_demonstrations_phase(phased):
-    near = phased[1].positions[0, :2] + 0.01
-    state = start_state(phased, near)
-    np.testing.assert_array_equal(state[:2], near)
-    np.testing.assert_array_equal(state[2:], phased[1].positions[0, 2:])
+def test_start_state_takes_the_nearest_samples_phase_beside_the_data_and_0_away(phased):
+    # GIVEN a start a hair beside a sample in the middle of demonstration 1
+    sample = phased[1].states[300]
+    state = start_state(phased, sample[:2] + 0.001 * phased.extent())
+    # THEN it takes that sample's phase
+    np.testing.assert_array_equal(state[:2], sample[:2] + 0.001 * phased.extent())
+    np.testing.assert_array_equal(state[2:], sample[2:])
+    # AND a start further than the reach from every sample gets phase 0
+    far = phased.target[:2] + 3.0 * phased.extent()
+    np.testing.assert_array_equal(start_state(phased, far)[2:], 0.0)
     with pytest.raises(DataError, match="shape"):
         start_state(phased, np.zeros(3))
 
@@ -238,10 +243,7 @@ def test_cli_train_evaluate_plot_export_with_a_phase(tmp_path, capsys):
     demos = DataSource(motion="Sine", demos=2, phase=Phase(codes=2)).load()
     starts = np.array(json.loads(meta["snds.start_states"]))
     np.testing.assert_array_equal(starts, np.stack([d.states[0] for d in demos]))
-    position = np.array([-30.0, 5.0])
-    nearest = starts[np.argmin(np.linalg.norm(starts[:, :2] - position, axis=1))]
-    state = np.concatenate([position, nearest[2:]])
-    np.testing.assert_array_equal(state, start_state(demos, position))
+    state = start_state(demos, demos[0].states[100, :2] + 0.5)
     policy, _ = load_model(out)
     expected = policy.to(torch.float64).predict(state[None])
     np.testing.assert_allclose(

@@ -14,7 +14,8 @@ joint state: every rollout reaches :math:`(x^*, 0)` (the model's space is
 :class:`~snds.spaces.Phased`, whose metrics and plots read the positions).
 
 What a user gives up: a start needs a phase. :func:`start_state` takes the phase of the
-demonstration whose start is nearest. And a robot that is held should not let its phase run
+nearest demonstrated sample for a start beside the demonstrations, and phase 0 for one away
+from them. And a robot that is held should not let its phase run
 on (the phase stopping of dynamic movement primitives): :func:`phase_step` advances the phase
 by the share of the commanded displacement that the measured positions made, so that on an
 unhindered robot it is the policy's own step and on a held one the phase waits.
@@ -29,10 +30,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from snds.data.demonstrations import Demonstrations, DemonstrationSet
+from snds.data.demonstrations import DemonstrationSet
 from snds.errors import ConfigError, DataError
 
-__all__ = ["Phase", "phase_step", "start_state"]
+__all__ = ["START_REACH", "Phase", "phase_step", "start_state"]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -93,24 +94,41 @@ class Phase:
         return cls(codes=record["codes"], seed=record.get("seed", 0))
 
 
-def start_state(demos: Demonstrations, position: np.ndarray) -> np.ndarray:
-    """A phased start at a position: the start phase of the demonstration whose start
-    position is nearest (so the rollout follows that demonstration from where it is).
+#: How near (in extents) a new start must be to a demonstrated position to take its phase:
+#: :func:`start_state`.
+START_REACH = 0.05
+
+
+def start_state(
+    demos: DemonstrationSet, position: np.ndarray, *, reach: float = START_REACH
+) -> np.ndarray:
+    """A phased start at a base state (a position, or a pose): the phase of the nearest
+    demonstrated sample if one lies within ``reach`` extents of its position, so that a start
+    on or beside a demonstration retraces it from there; else phase 0, so that a start away
+    from the data heads for the target instead of for a demonstration
+    (docs/design.md, "A new start's phase").
 
     Arguments:
         demos: The phased demonstrations of the task.
-        position: The start position, shape (n,).
+        position: The start's base state, shape (b,): a position (n,), or a pose (7,).
+        reach: The distance in extents within which a demonstrated sample lends its phase.
 
     Returns:
-        The start state, shape (n + m,).
+        The start state, shape (b + m,).
     """
-    p = demos.position_dim
+    m = demos.phase_dim
+    b = len(demos.target) - m
     position = np.asarray(position, dtype=np.float64)
-    if position.shape != (p,):
-        raise DataError(f"a start position has shape ({p},), got {position.shape}")
-    starts = np.stack([demo.states[0] for demo in demos])
-    nearest = int(np.argmin(np.linalg.norm(starts[:, :p] - position, axis=1)))
-    return np.concatenate([position, starts[nearest, p:]])
+    if position.shape != (b,):
+        raise DataError(
+            f"a start has shape ({b},) (the state without its phase), got {position.shape}"
+        )
+    p = demos.position_dim
+    samples = np.concatenate([demo.states for demo in demos])
+    distance = np.linalg.norm(samples[:, :p] - position[:p], axis=1)
+    nearest = int(np.argmin(distance))
+    near = distance[nearest] <= reach * demos.extent()
+    return np.concatenate([position, samples[nearest, b:] if near else np.zeros(m)])
 
 
 def phase_step(

@@ -1,0 +1,270 @@
+"""Real recordings: does the default `snds train` retrace every real file of ../shared/data
+and drawn shapes that cross, and reach the target from new starts and after pushes?
+
+Each task is trained with the default ``snds train`` and only the data options its file
+needs (a rate, a quaternion order, a length unit), one run per seed, then measured:
+
+* ``frechet``: the worst discrete Fréchet distance between a demonstration and the rollout
+  from its start over 1.5x its duration, in extents (``retrace_frechet_max`` of
+  metrics.json); ``final``: the worst distance of such a rollout's end from the target;
+* ``angle_along`` / ``angle_end``: a pose model's mean orientation error along the path and
+  at the end, radians (metrics.json);
+* ``converged``, ``violations``: the stability check; ``safe_dt`` beside ``data_dt``, the
+  demonstrations' mean step;
+* ``check_cpu`` beside ``train_cpu``: the check's CPU seconds, measured again here, against
+  the fit's;
+* ``ratio`` / ``arrived``: from 40 random positions in the demonstrations' box enlarged
+  1.5x (a pose start takes the nearest sample's orientation; a phase comes from
+  :func:`snds.phase.start_state`), the median path length over the straight distance, and
+  the share arriving within 1 % of the extent within 3x the longest demonstration's duration;
+* ``push``: after a push sideways of 10 % of the extent at 30 % of each demonstration's
+  duration (the phase kept), the worst Fréchet distance between the rest of the rollout
+  and the rest of the demonstration, in extents.
+
+    python benchmarks/real_recordings.py --seeds 3            # train, measure, write
+    python benchmarks/real_recordings.py --seeds 3 --done-only  # measure runs already trained
+
+Writes runs under ``runs/real-recordings/``, ``benchmarks/results/real-recordings.json`` and
+the ``real-recordings`` table of ``benchmarks/README.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from _readme import cpu_name, write_readme_section
+from drawn_shapes import SHAPES, write_csv
+
+from snds.data import DataSource
+from snds.metrics import frechet
+from snds.models import load_model
+from snds.phase import start_state
+from snds.policy import float64_copy
+from snds.rollout import rollout_numpy
+from snds.stability import CheckConfig, check_stability
+
+HERE = Path(__file__).resolve().parent
+DATA = HERE.parent.parent / "shared" / "data"
+
+#: Each task: its data file (relative to ../shared/data, or a drawn shape) and the options
+#: its file needs.
+TASKS: dict[str, list[str]] = {
+    "Messy_snake": ["Messy_snake.mat"],
+    "3D_Cshape_top": ["3D_Cshape_top.mat"],
+    "3D_viapoint_1": ["3D_viapoint_1.mat"],
+    "3D-pick-box_(0,2)": ["3D-pick-box.mat", "--demos", "0,2"],
+    "3D-pick-box_(1,3)": ["3D-pick-box.mat", "--demos", "1,3"],
+    "3D_sink": ["3D_sink.mat"],
+    "pouring": [
+        "clfd/pouring.npy",
+        "--rate",
+        "60",
+        "--quaternion-order",
+        "wxyz",
+        "--length-unit",
+        "cm",
+    ],
+    "bottle2shelf": [
+        "clfd/bottle2shelf.npy",
+        "--rate",
+        "60",
+        "--quaternion-order",
+        "wxyz",
+        "--length-unit",
+        "cm",
+    ],
+    "panda_pose": ["panda_kinesthetic_pose.mat", "--quaternion-order", "wxyz"],
+    **{f"drawn_{name}": [f"drawn:{name}"] for name in SHAPES},
+}
+
+BARS = {"frechet": 0.05, "final": 0.01, "angle_along": 0.1, "angle_end": 0.05, "push": 0.10}
+
+
+def train(task: str, seed: int, out: Path, drawn: Path) -> float:
+    """Trains one task with the default `snds train`; returns its CPU seconds."""
+    file, *options = TASKS[task]
+    path = drawn / f"{file[6:]}.csv" if file.startswith("drawn:") else DATA / file
+    argv = ["--threads", "1", "--quiet", "train", "--data", str(path), "--seed", str(seed)]
+    start = time.process_time()
+    before = _children_cpu()
+    subprocess.run([sys.executable, "-m", "snds", *argv, *options, "--out", str(out)], check=True)
+    return _children_cpu() - before + time.process_time() - start
+
+
+def _children_cpu() -> float:
+    import resource
+
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
+
+
+def measure(run: Path, seed: int) -> dict:
+    """The figures of one trained run (see the module docstring)."""
+    metrics = json.loads((run / "metrics.json").read_text())
+    policy, description = load_model(run)
+    demos = DataSource.from_record(description["data"], poses=description["kind"] == "se3").load()
+    policy = float64_copy(policy)
+    stability = metrics["stability"]
+    start = time.process_time()
+    check_stability(policy, demos, config=CheckConfig(seed=seed))
+    check_cpu = time.process_time() - start
+    row = {
+        "frechet": metrics["retrace_frechet_max"],
+        "final": metrics["retrace_final_max"],
+        "angle_along": metrics.get("angle_error_along"),
+        "angle_end": metrics.get("final_angle_error"),
+        "converged": stability["converged_fraction"],
+        "violations": stability["decrease_violations"],
+        "safe_dt": stability["largest_safe_dt"],
+        "data_dt": demos.mean_dt(),
+        "train_cpu": metrics["train_seconds"],
+        "check_cpu": check_cpu,
+        "phase_dim": demos.phase_dim,
+    }
+    return row | new_starts(policy, demos, seed) | {"push": pushed(policy, demos)}
+
+
+def _base_states(demos, positions: np.ndarray) -> np.ndarray:
+    """Base states (no phase) at ``positions``: a pose takes the nearest sample's orientation."""
+    p = demos.position_dim
+    b = len(demos.target) - demos.phase_dim
+    if b == p:
+        return positions
+    samples = np.concatenate([demo.states for demo in demos])
+    nearest = np.argmin(np.linalg.norm(samples[None, :, :p] - positions[:, None], axis=-1), axis=1)
+    return np.concatenate([positions, samples[nearest, p:b]], axis=1)
+
+
+def _start(demos, base: np.ndarray) -> np.ndarray:
+    return start_state(demos, base) if demos.phase_dim else base
+
+
+def new_starts(policy, demos, seed: int, count: int = 40) -> dict:
+    """Median path ratio and arrival share from random starts in the 1.5x box."""
+    p = demos.position_dim
+    positions = demos.positions()
+    low, high = positions.min(0), positions.max(0)
+    rng = np.random.default_rng(seed)
+    chosen = (low + high) / 2 + rng.uniform(-1, 1, (count, p)) * (high - low) / 2 * 1.5
+    starts = np.stack([_start(demos, b) for b in _base_states(demos, chosen)])
+    duration = demos.max_duration()
+    dt = demos.mean_dt()
+    paths = rollout_numpy(policy, starts, dt=dt, steps=int(np.ceil(3 * duration / dt)))[..., :p]
+    target = demos.target[:p]
+    lengths = np.linalg.norm(np.diff(paths, axis=1), axis=-1).sum(1)
+    ratios = lengths / np.linalg.norm(paths[:, 0] - target, axis=-1)
+    arrived = np.linalg.norm(paths[:, -1] - target, axis=-1) <= 0.01 * demos.extent()
+    return {"ratio": float(np.median(ratios)), "arrived": float(arrived.mean())}
+
+
+def pushed(policy, demos, at: float = 0.3, size: float = 0.1) -> float:
+    """Worst Fréchet distance (extents) of the rest of a pushed rollout from the rest of its
+    demonstration (see the module docstring)."""
+    p = demos.position_dim
+    extent = demos.extent()
+    worst = 0.0
+    for demo in demos:
+        dt = demo.duration / (len(demo.times) - 1)
+        k = int(at * (len(demo.times) - 1))
+        before = rollout_numpy(policy, demo.states[:1], dt=dt, steps=k)[0, -1]
+        velocity = demo.velocities[k, :p]
+        sideways = np.zeros(p)
+        sideways[:2] = [-velocity[1], velocity[0]]
+        if np.linalg.norm(sideways) == 0:
+            sideways[0] = 1.0
+        before[:p] += size * extent * sideways / np.linalg.norm(sideways)
+        rest = rollout_numpy(policy, before[None], dt=dt, steps=int(1.5 * (len(demo.times) - k)))
+        gap = frechet(rest[0, :, :p], demo.positions[k:, :p]) / extent
+        worst = max(worst, gap)
+    return worst
+
+
+def meets(row: dict) -> bool:
+    ok = all(row[k] is None or row[k] <= bar for k, bar in BARS.items())
+    return (
+        ok
+        and row["converged"] == 1.0
+        and row["violations"] == 0
+        and row["safe_dt"] >= row["data_dt"]
+        and row["check_cpu"] <= row["train_cpu"]
+        and row["ratio"] <= 2.0
+        and row["arrived"] == 1.0
+    )
+
+
+def _cell(value) -> str:
+    return "-" if value is None else f"{value:.3g}"
+
+
+def table(rows: list[dict]) -> str:
+    columns = ["frechet", "final", "angle_along", "angle_end", "push", "ratio", "arrived"]
+    lines = [
+        f"{cpu_name()}, one thread per run; worst over the seeds; bars: Fréchet <= 0.05, final "
+        "<= 0.01, angle along <= 0.1 rad, at the end <= 0.05, push <= 0.10 (extents), ratio "
+        "<= 2, arrived 1.0, converged 1.0, 0 violations, safe step >= data step, check CPU <= "
+        "fit CPU.",
+        "",
+        "| task | seeds | " + " | ".join(columns) + " | safe step / data step | check / fit CPU "
+        "| meets every bar |",
+        "|---" * (len(columns) + 5) + "|",
+    ]
+    for task in TASKS:
+        mine = [r for r in rows if r["task"] == task]
+        if not mine:
+            continue
+        worst = {
+            c: None if mine[0][c] is None else max(r[c] for r in mine)
+            for c in columns
+            if c != "arrived"
+        }
+        worst["arrived"] = min(r["arrived"] for r in mine)
+        safe = min(r["safe_dt"] / r["data_dt"] for r in mine)
+        check = max(r["check_cpu"] / r["train_cpu"] for r in mine)
+        passed = sum(meets(r) for r in mine)
+        lines.append(
+            f"| {task} | {len(mine)} | "
+            + " | ".join(_cell(worst[c]) for c in columns)
+            + f" | {safe:.3g} | {check:.2f} | {passed} of {len(mine)} |"
+        )
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seeds", type=int, default=3)
+    parser.add_argument("--tasks", default=",".join(TASKS))
+    parser.add_argument("--runs", type=Path, default=Path("runs/real-recordings"))
+    parser.add_argument("--done-only", action="store_true", help="measure trained runs only")
+    parser.add_argument("--out", type=Path, default=HERE / "results" / "real-recordings.json")
+    args = parser.parse_args()
+    if not DATA.is_dir():
+        raise SystemExit(f"no data folder at {DATA}")
+    torch.set_num_threads(1)
+    rows = []
+    with tempfile.TemporaryDirectory() as drawn:
+        for name in SHAPES:
+            write_csv(name, Path(drawn) / f"{name}.csv")
+        for task in args.tasks.split(","):
+            for seed in range(args.seeds):
+                run = args.runs / f"{task}-{seed}"
+                if not args.done_only and not (run / "metrics.json").is_file():
+                    train(task, seed, run, Path(drawn))
+                if (run / "metrics.json").is_file():
+                    row = {"task": task, "seed": seed, **measure(run, seed)}
+                    print(json.dumps(row), flush=True)
+                    rows.append(row)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps({"cpu": cpu_name(), "rows": rows}, indent=1))
+    write_readme_section("real-recordings", table(rows))
+
+
+if __name__ == "__main__":
+    main()
