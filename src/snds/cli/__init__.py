@@ -2,8 +2,8 @@
 
 One module per subcommand (:mod:`snds.cli.train`, :mod:`~snds.cli.evaluate`,
 :mod:`~snds.cli.plot`, :mod:`~snds.cli.benchmark`, :mod:`~snds.cli.simulate`,
-:mod:`~snds.cli.export`, :mod:`~snds.cli.ros`, :mod:`~snds.cli.app`), each with ``register(commands)``, which adds
-its sub-parser, and ``run(args) -> int``.
+:mod:`~snds.cli.export`, :mod:`~snds.cli.ros`, :mod:`~snds.cli.app`), each with
+``register(commands)``, which adds its sub-parser, and ``run(args) -> int``.
 """
 
 from __future__ import annotations
