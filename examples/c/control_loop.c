@@ -66,7 +66,7 @@ int main(int argc, char **argv) {
            1e6 * percentile(wake, periods, 0.99), 1e6 * percentile(wake, periods, 0.999),
            1e6 * percentile(wake, periods, 1.0));
     printf("\"step_us\": {\"median\": %.2f, \"p99\": %.2f, \"max\": %.2f}, "
-           "\"final_distance_over_extent\": %.3g}\n",
+           "\"distance_over_extent_at_the_end\": %.3g}\n",
            1e6 * percentile(compute, periods, 0.5), 1e6 * percentile(compute, periods, 0.99),
            1e6 * percentile(compute, periods, 1.0), sqrt(distance) / SNDS_EXTENT);
     return 0;
