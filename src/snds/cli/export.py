@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from snds import c_check, c_export
 from snds.cli._args import _obstacle_arguments
 from snds.cli._common import _scene
 from snds.data import DataSource
@@ -92,8 +93,6 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run_c(args: argparse.Namespace, policy: Policy) -> int:
-    from snds import c_check, c_export
-
     out = args.out or args.model / "policy.h"
     options = {"max_speed": args.max_speed}
     if args.rate is not None:

@@ -8,7 +8,7 @@ import time
 from pathlib import Path
 
 from snds.models import load_model
-from snds.ros import NodeConfig
+from snds.ros import NodeConfig, make_node
 
 __all__ = ["register", "run"]
 
@@ -48,8 +48,6 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from snds.ros import make_node
-
     config = NodeConfig(
         state_topic=args.state_topic,
         command_topic=args.command_topic,
