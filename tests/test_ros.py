@@ -131,6 +131,18 @@ def test_bad_settings_and_models_are_refused_in_one_line():
         NodeConfig(max_speed=-1.0)
     with pytest.raises(ConfigError, match="state-type"):
         NodeConfig(state_type="Odometry")
-    # the command is the guarded velocity, padded to a twist
-    twist = Controller(linear_policy(2.0)).command(np.array([1.0, 0.5]), dt=0.01, max_speed=0)
-    np.testing.assert_allclose(twist, [-2.0, -1.0, 0, 0, 0, 0])
+    with pytest.raises(ConfigError, match="backend"):
+        Controller(linear_policy(2.0), backend="onnx")
+    # the command is the guarded velocity, padded to a twist, by the library and by the C
+    # export alike
+    for backend in ("torch", "auto"):
+        controller = Controller(linear_policy(2.0), backend=backend)
+        twist = controller.command(np.array([1.0, 0.5]), dt=0.01, max_speed=0)
+        np.testing.assert_allclose(twist, [-2.0, -1.0, 0, 0, 0, 0], rtol=1e-12)
+        # a step of 1.5 maps x to -2 x; halved twice (0.375) it reaches x / 4, where V falls
+        # by 15/16 >= the half of the promised 4 V h it must: a quarter of the velocity
+        halved = controller.command(np.array([1.0, 0.5]), dt=1.5, max_speed=0)
+        np.testing.assert_allclose(halved, [-0.5, -0.25, 0, 0, 0, 0], rtol=1e-12)
+        # a limit of 1 unit/s: the unit vector towards the target (V still falls at h = dt)
+        limited = controller.command(np.array([1.0, 0.5]), dt=0.1, max_speed=1.0)
+        np.testing.assert_allclose(limited[:2], -np.array([1.0, 0.5]) / np.hypot(1, 0.5))

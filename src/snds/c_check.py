@@ -107,6 +107,22 @@ class CPolicy:
     def _suffix(dtype: type) -> tuple[str, type]:
         return ("", ctypes.c_double) if np.dtype(dtype) == np.float64 else ("_f", ctypes.c_float)
 
+    def stepper(self):
+        """A function (state (states,), dt, max_speed) -> command (velocities,) of the double
+        step for one state at a time, on buffers made once (a control loop's call)."""
+        state = np.zeros(self.states)
+        command, reached = np.zeros(self.velocities), np.zeros(self.states)
+        pointer = ctypes.POINTER(ctypes.c_double)
+        function = getattr(self.lib, f"{self.prefix}_step")
+        arguments = [p.ctypes.data_as(pointer) for p in (state, command, reached)]
+
+        def step(x: np.ndarray, dt: float, max_speed: float) -> np.ndarray:
+            state[:] = x
+            function(arguments[0], dt, max_speed, arguments[1], arguments[2])
+            return command.copy()
+
+        return step
+
     def policy(self, x: np.ndarray, dtype: type = np.float64) -> np.ndarray:
         """Velocities (B, velocities) at states (B, states), one call per state."""
         suffix, real = self._suffix(dtype)
