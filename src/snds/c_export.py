@@ -34,6 +34,7 @@ import math
 import re
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from snds.c_source import CExportError, Generator
@@ -84,6 +85,7 @@ def export_c(
     rate: float = DEFAULT_RATE,
     max_speed: float | None = None,
     prefix: str = "snds",
+    starts: np.ndarray | None = None,
 ) -> Path:
     """Writes a policy as C99: ``path`` (the header, ``.h``) and the source beside it (``.c``).
 
@@ -95,6 +97,8 @@ def export_c(
             positions per second; None: 0, no limit), what a loop passes to the step.
         prefix: Prefix of every public name (functions ``prefix_policy``, macros
             ``PREFIX_*``).
+        starts: A model with a phase: the demonstrations' start states (D, space.dim), for
+            ``prefix_start_state`` (a new start's phase, as :func:`snds.phase.start_state`).
 
     Returns:
         The header's path.
@@ -112,7 +116,19 @@ def export_c(
     path = Path(path)
     if path.suffix != ".h":
         raise CExportError(f"{path}: the C export's file is the header, ending in .h")
-    generator = Generator(exact, prefix=prefix)
+    if starts is not None:
+        starts = np.asarray(starts, dtype=np.float64)
+        if (
+            not policy.space.phase_dim
+            or starts.ndim != 2
+            or starts.shape[1] != policy.space.dim
+            or not np.isfinite(starts).all()
+        ):
+            raise CExportError(
+                f"start states are for a model with a phase: finite, of shape (D, "
+                f"{policy.space.dim}); got {starts.shape}"
+            )
+    generator = Generator(exact, prefix=prefix, starts=starts)
     header, source = generator.header(rate=rate, max_speed=max_speed or 0.0), generator.source()
     source = source.replace('#include "HEADER"', f'#include "{path.name}"')
     atomic_write(path.with_suffix(".c"), lambda tmp: tmp.write_text(source))

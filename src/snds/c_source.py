@@ -111,8 +111,11 @@ class Generator:
         prefix: Prefix of the public names.
     """
 
-    def __init__(self, policy: StablePolicy, *, prefix: str) -> None:
+    def __init__(
+        self, policy: StablePolicy, *, prefix: str, starts: np.ndarray | None = None
+    ) -> None:
         self.policy = policy
+        self.starts = None if starts is None else np.asarray(starts, dtype=np.float64)
         self.prefix = prefix
         self.pose = isinstance(policy, PosePolicy)
         space = policy.space
@@ -134,6 +137,8 @@ class Generator:
         p, n = self.policy, self.n
         zero = torch.zeros(1, n, dtype=torch.float64)
         self.add("CENTER", p.center)
+        if self.starts is not None:
+            self.add("START_STATES", self.starts)
         if self.pose:
             self.add("TARGET_POSITION", p.target_position)
             self.add("TARGET_ORIENTATION", p.target_orientation)
@@ -585,6 +590,26 @@ REAL {prefix}_stepSUFFIX(const REAL *state, REAL dt, REAL max_speed, REAL *comma
 }}
 """
 
+    def _start(self) -> str:
+        if self.starts is None:
+            return ""
+        s, p = self.states, self.position_dim
+        return f"""void {self.prefix}_start_stateSUFFIX(const REAL *position, REAL *state) {{
+    int d, i, nearest = 0;
+    REAL best = LIT(0.0);
+    for (d = 0; d < {len(self.starts)}; ++d) {{
+        REAL distance = LIT(0.0);
+        for (i = 0; i < {p}; ++i) {{
+            const REAL offset = START_STATES_SFX[d * {s} + i] - position[i];
+            distance += offset * offset;
+        }}
+        if (d == 0 || distance < best) {{ best = distance; nearest = d; }}
+    }}
+    for (i = 0; i < {p}; ++i) state[i] = position[i];
+    for (i = {p}; i < {s}; ++i) state[i] = START_STATES_SFX[nearest * {s} + i];
+}}
+"""
+
     def source(self) -> str:
         """The ``.c`` file (its ``#include`` names the header as ``HEADER``)."""
         parts = [
@@ -603,6 +628,7 @@ REAL {prefix}_stepSUFFIX(const REAL *state, REAL dt, REAL max_speed, REAL *comma
                 self._to_user(),
                 self._advance(),
                 self._public(),
+                self._start(),
             ]
         )
         for variant in VARIANTS:
@@ -651,6 +677,15 @@ REAL {prefix}_stepSUFFIX(const REAL *state, REAL dt, REAL max_speed, REAL *comma
                 f"{real} {prefix}_step{sfx}(const {real} *state, {real} dt, {real} max_speed,",
                 f"    {real} *command, {real} *next);",
             ]
+        if self.starts is not None:
+            lines.append(f"#define {macro}_START_COUNT {len(self.starts)}")
+            for variant in VARIANTS:
+                real, sfx = variant.real, variant.suffix
+                lines += [
+                    "/* A start state at a position: the position, then the phase of the",
+                    " * demonstration whose start is nearest (snds.phase.start_state). */",
+                    f"void {prefix}_start_state{sfx}(const {real} *position, {real} *state);",
+                ]
         lines += ["#ifdef __cplusplus\n}\n#endif", f"#endif /* {macro}_POLICY_H */", ""]
         return "\n".join(lines)
 

@@ -77,7 +77,7 @@ def run(args: argparse.Namespace) -> int:
     if scene is not None:
         policy = _with_obstacles(policy, scene)
     if args.format == "c":
-        return _run_c(args, policy)
+        return _run_c(args, policy, description)
     if args.max_speed is not None or args.rate is not None:
         raise ConfigError("--max-speed and --rate are options of --format c")
     out = args.out or args.model / f"policy.{args.format}"
@@ -92,9 +92,12 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _run_c(args: argparse.Namespace, policy: Policy) -> int:
+def _run_c(args: argparse.Namespace, policy: Policy, description: dict) -> int:
     out = args.out or args.model / "policy.h"
     options = {"max_speed": args.max_speed}
+    if policy.space.phase_dim:
+        # A controller of a model with a phase takes a new start's phase from these.
+        options["starts"] = _start_states(args.model, description)
     if args.rate is not None:
         options["rate"] = args.rate
     path = c_export.export_c(policy, out, **options)
