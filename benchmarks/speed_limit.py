@@ -6,7 +6,8 @@ ideal integrator, with no limit and with limits of 1x and 0.5x the demonstration
 The command is the model's C export's ``snds_step`` (what :func:`snds.rollout.safe_velocity`
 computes, to rounding: tests/test_c_export.py), 50x faster than the library on one state.
 Reported per limit: the peak commanded speed of the positions, how many starts arrive
-(within 1 % of the extent), the slowest arrival time, and the shortest guarded step taken.
+(within 1 % of the extent), the slowest arrival time, and the shortest guarded step taken on
+the way (states farther than 1 % of the extent from the target).
 
     python benchmarks/speed_limit.py --model tests/fixtures/models-c52752d/sine
 
@@ -53,7 +54,10 @@ def run(controller, policy, x0: np.ndarray, *, rate: float, seconds: float, max_
     for step in range(int(seconds * rate)):
         command, h, _ = controller.step(x, dt, max_speed or 0.0)
         peak = max(peak, float(np.linalg.norm(command, axis=1).max()))
-        shortest = min(shortest, float(h.min()))
+        # Only on the way: at the target V is rounding noise and the guard halves to the end.
+        away = np.linalg.norm(x - policy.target, axis=1) > 0.01 * extent
+        if away.any():
+            shortest = min(shortest, float(h[away].min()))
         x = x + dt * command
         inside = np.linalg.norm(x - policy.target, axis=1) <= 0.01 * extent
         arrived = np.where(inside & np.isinf(arrived), (step + 1) * dt, arrived)
@@ -115,7 +119,7 @@ def main() -> None:
     )
     lines = [
         "| limit | peak commanded speed | arrived (1 % of the extent) | slowest arrival (s) "
-        "| farthest at the end (extents) | shortest guarded step (s) |",
+        "| farthest at the end (extents) | shortest guarded step on the way (s) |",
         "|---|---|---|---|---|---|",
     ]
     for row in rows:
