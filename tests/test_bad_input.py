@@ -21,7 +21,15 @@ import torch
 from safetensors.torch import save_file
 
 from snds.cli import main
-from snds.data import Demonstration, Demonstrations, Normalization, load_demonstrations, load_lasa
+from snds.data import (
+    Demonstration,
+    Demonstrations,
+    Normalization,
+    ReadOptions,
+    load_demonstrations,
+    load_lasa,
+    load_recording,
+)
 from snds.data.poses import load_poses
 from snds.errors import ConfigError, DataError, ModelFileError, SNDSError
 from snds.models import FORMAT_VERSION, load_model, save_model
@@ -29,6 +37,7 @@ from snds.policy import PolicyConfig
 from snds.train import TrainConfig, fit
 
 from conftest import SMALL, make_policy, spiral_demos
+from recording_files import line_poses, write_bag, write_lerobot
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "bad-input.md"
 GOOD_CSV = "demo,t,x1,x2\n0,0,1,1\n0,1,0,0\n1,0,1.2,0.9\n1,1,0,0\n"
@@ -204,6 +213,61 @@ def below_float32(folder: Path):
     return ["train", "--data", str(path)], lambda: Normalization.fit(load_demonstrations(path))
 
 
+def recording(name: str, write: Callable[[Path], None], **options):
+    """A case whose input is a recording given to ``snds train --data`` with the flags of
+    these :class:`~snds.data.ReadOptions`; the API's call is :func:`load_recording`."""
+
+    def make(folder: Path):
+        path = folder / name
+        write(path)
+        flags = [
+            part
+            for field, value in options.items()
+            for part in (f"--{field.replace('_', '-')}", str(value))
+        ]
+        return ["train", "--data", str(path), *flags], lambda: load_recording(
+            path, options=ReadOptions(**options)
+        )
+
+    return make
+
+
+def bag_with_joints(path: Path) -> None:
+    pytest.importorskip("rosbags")
+    write_bag(path, line_poses(10), others={"/joint_states": "sensor_msgs/msg/JointState"})
+
+
+def empty_bag(path: Path) -> None:
+    pytest.importorskip("rosbags")
+    write_bag(path, line_poses(0))
+
+
+def truncated_bag(path: Path) -> None:
+    pytest.importorskip("rosbags")
+    write_bag(path.parent / "whole", line_poses(20))
+    data = next((path.parent / "whole").glob("*.mcap")).read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    for item in sorted((path.parent / "whole").iterdir()):
+        item.unlink()
+    (path.parent / "whole").rmdir()
+
+
+def lerobot_actions(path: Path) -> None:
+    pytest.importorskip("pyarrow")
+    write_lerobot(path, [np.linspace([1.0, 1.0], [0.0, 0.0], 10)], column="action")
+
+
+def npy_poses(path: Path) -> None:
+    np.save(path, line_poses(10)[None])
+
+
+def scaled_transforms(path: Path) -> None:
+    transforms = np.tile(np.eye(4), (1, 10, 1, 1))
+    transforms[0, :, :3, 3] = np.linspace([1.0, 0.0, 0.0], [0.0, 0.0, 0.0], 10)
+    transforms[0, 4, :3, :3] *= 1.5
+    np.save(path, transforms)
+
+
 CASES: dict[str, Case] = {
     "empty file": Case(data_file("empty.csv", text("")), DataError, "empty.csv: file is empty"),
     "wrong extension": Case(
@@ -273,6 +337,48 @@ CASES: dict[str, Case] = {
         pose_file("turned.csv", _poses_with(3, [0, 0, 0.7071, 0.7071])),
         DataError,
         "turned.csv: demonstrations do not end at a common orientation",
+    ),
+    "bag without the topic": Case(
+        recording("rec", bag_with_joints, topic="/ee"),
+        DataError,
+        r"rec: no topic '/ee' in the bag; it has: /ee_pose \(geometry_msgs/msg/PoseStamped\), "
+        r"/joint_states \(sensor_msgs/msg/JointState\)",
+    ),
+    "bag topic of an unsupported type": Case(
+        recording("rec", bag_with_joints, topic="/joint_states"),
+        DataError,
+        "rec: topic /joint_states has type sensor_msgs/msg/JointState; snds reads geometry_msgs",
+    ),
+    "empty bag": Case(
+        recording("rec", empty_bag), DataError, "rec: topic /ee_pose has no messages"
+    ),
+    "truncated bag": Case(
+        recording("cut.mcap", truncated_bag),
+        DataError,
+        r"cut.mcap: not a readable bag \(empty, truncated or corrupt\?\)",
+    ),
+    "dataset without the column": Case(
+        recording("dataset", lerobot_actions),
+        DataError,
+        "dataset: the dataset has no column 'observation.state'; choose with --columns from: "
+        "action",
+    ),
+    "recording without time stamps": Case(
+        recording("poses.npy", npy_poses, quaternion_order="xyzw"),
+        DataError,
+        r"poses.npy: demonstration 0: a .npy array stores no time stamps: give its sampling "
+        r"rate \(--rate HZ",
+    ),
+    "quaternions of unknown order": Case(
+        recording("poses.npy", npy_poses, rate=10),
+        DataError,
+        "poses.npy: the array holds quaternions in unnamed columns: state their order with "
+        "--quaternion-order xyzw or wxyz",
+    ),
+    "transforms that are not rotations": Case(
+        recording("tf.npy", scaled_transforms, rate=10),
+        DataError,
+        "tf.npy: the 3x3 blocks are not rotations: a singular value is 0.5 from 1",
     ),
     "unknown motion": Case(unknown_motion, DataError, "unknown LASA motion 'Sinus'"),
     "bad setting": Case(

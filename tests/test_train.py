@@ -6,11 +6,12 @@ import torch
 
 import snds.losses as losses_module
 import snds.train as train_module
-from snds.data import no_split, split_samples
+from snds.data import Demonstration, Demonstrations, no_split, split_samples
 from snds.evaluate import accuracy
-from snds.train import TrainConfig, TrainingError, fit
+from snds.losses import AT_TARGET, make_samples
+from snds.train import TrainConfig, TrainingError, fit, training_samples
 
-from conftest import SMALL, make_policy
+from conftest import SMALL, make_policy, spiral_demos
 
 FAST = TrainConfig(steps=400, batch_size=256, window_batch_size=64, lr=1e-2)
 
@@ -440,3 +441,39 @@ def test_a_correction_width_pulls_towards_the_weighted_paths(spiral):
     pull = samples.pull(draw.positions, config.correction_width, velocity)
     expected = velocity - config.noise_correction * pull
     torch.testing.assert_close(draw.velocities, expected)
+
+
+def test_training_samples_drop_only_the_states_at_the_target(spiral):
+    # GIVEN samples with one state exactly at the target and one a hair away
+    policy = make_policy(spiral)
+    noiseless = TrainConfig(position_noise=0.0)
+    samples = training_samples(spiral, policy, no_split(spiral), noiseless)
+    everything = make_samples(spiral, policy.normalization, no_split(spiral), window=2)
+    at_target = (everything.positions.norm(dim=-1) <= AT_TARGET).sum().item()
+    # THEN without noise those at the target go (pi = 0 there for any weights), the rest stay
+    assert at_target >= 1
+    assert len(samples.positions) == len(everything.positions) - at_target
+    assert (samples.positions.norm(dim=-1) > AT_TARGET).all()
+    # AND with noise every velocity sample stays: noise moves it off the target
+    noisy = training_samples(spiral, policy, no_split(spiral), TrainConfig())
+    assert len(noisy.positions) == len(everything.positions)
+    assert (noisy.window_starts.norm(dim=-1) > AT_TARGET).all()
+
+
+def test_a_noiseless_fit_with_samples_a_hair_from_the_target_does_not_diverge():
+    # GIVEN demonstrations whose last samples lie 1e-19 from the target (as a pose chart's
+    # log map leaves them), trained in float32 without position noise
+    base = spiral_demos(count=2, samples=200)
+    demos = []
+    for demo in base:
+        positions = demo.positions.copy()
+        positions[-1] = base.target + np.array([3e-19, -2e-19])
+        demos.append(Demonstration(positions, demo.velocities, demo.times))
+    demos = Demonstrations(tuple(demos), base.target, "hair")
+    policy = make_policy(demos, dtype=torch.float32)
+    config = TrainConfig(steps=100, seed=0, position_noise=0.0, max_restarts=0)
+    # WHEN it trains with no restart allowed
+    result = fit(policy, demos, no_split(demos), config, progress=False)
+    # THEN no step diverged (there |grad V|^2 ~ 1e-38 and the projection's derivative overflowed)
+    assert result.restarts == 0
+    assert all(torch.isfinite(p).all() for p in policy.parameters())

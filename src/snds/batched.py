@@ -35,7 +35,7 @@ from tqdm.auto import tqdm
 
 from snds.data.demonstrations import Demonstrations, Split
 from snds.errors import ConfigError
-from snds.losses import Samples, make_samples
+from snds.losses import Samples
 from snds.policy import Policy
 from snds.train import (
     DTYPES,
@@ -51,6 +51,7 @@ from snds.train import (
     _step_loss,
     _StepInputs,
     clip_gradients,
+    training_samples,
 )
 
 __all__ = ["fit_many"]
@@ -123,9 +124,7 @@ def fit_many(
         # As fit sets itself up, so that each fit starts from what a separate one would.
         dtype = DTYPES[config.dtype]
         policy.to(device=config.device, dtype=dtype)
-        samples = make_samples(demo, policy.normalization, split, window=config.window).to(
-            dtype, config.device
-        )
+        samples = training_samples(demo, policy, split, config)
         policy.set_anchors(samples.positions)
         generator = torch.Generator().manual_seed(config.seed)
         state = _State(good=copy.deepcopy(policy.state_dict()))

@@ -35,6 +35,27 @@ class Samples:
     window_targets: Tensor
     window_steps: Tensor
 
+    def off_target(self, *, positions: bool = True) -> Samples:
+        r"""The same samples without the states at the target (within :data:`AT_TARGET` of
+        model coordinates 0): the window starts there, and with ``positions`` the velocity
+        samples there too.
+
+        At the target :math:`\pi = 0` for any weights, so such a state adds nothing to the
+        loss, but its gradient is a 0/0: the projection divides by
+        :math:`\|\nabla V\|^2`, which is 0 up to rounding there, and its derivative
+        overflows float32. A velocity sample that position noise moves off the target is kept
+        (``positions=False``): there it does carry information.
+        """
+        keep = self.window_starts.norm(dim=-1) > AT_TARGET
+        at = self.positions.norm(dim=-1) > AT_TARGET if positions else slice(None)
+        return Samples(
+            positions=self.positions[at],
+            velocities=self.velocities[at],
+            window_starts=self.window_starts[keep],
+            window_targets=self.window_targets[keep],
+            window_steps=self.window_steps[keep],
+        )
+
     def to(self, dtype: torch.dtype, device: torch.device | str = "cpu") -> Samples:
         """The same samples with another dtype / device."""
         tensors = (getattr(self, field.name) for field in dataclasses.fields(self))
@@ -117,6 +138,10 @@ class Samples:
         references = self.positions[::stride].detach().to(device="cpu", dtype=torch.float64)
         return cKDTree(references.numpy()), stride
 
+
+#: States closer than this to the target (model coordinates, where the data span about 1) are
+#: the target as float32 resolves it: within a few units of its rounding of a unit length.
+AT_TARGET = 1e-6
 
 #: The most training samples :meth:`Samples.nearest` searches (evenly spaced in the samples'
 #: order), so the cost of building its tree does not grow with the data.

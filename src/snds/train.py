@@ -18,7 +18,7 @@ from safetensors.torch import load_file, save_file
 from tqdm.auto import tqdm
 
 from snds.data.demonstrations import Demonstrations, Split
-from snds.errors import CheckpointError, ConfigError, SNDSError
+from snds.errors import CheckpointError, ConfigError, DataError, SNDSError
 from snds.io import atomic_write
 from snds.losses import (
     VELOCITY_SHAPES,
@@ -304,6 +304,27 @@ def _batch(size: int, total: int, generator: torch.Generator, device: str) -> to
     return torch.randint(total, (size,), generator=generator).to(device)
 
 
+def training_samples(
+    demos: Demonstrations, policy: Policy, split: Split, config: TrainConfig
+) -> Samples:
+    """The samples a fit trains on, in model coordinates, in ``config``'s dtype and device:
+    those of ``split`` (:func:`snds.losses.make_samples`) without the states exactly at the
+    target that nothing moves off it (:meth:`~snds.losses.Samples.off_target`).
+
+    Arguments:
+        demos: The demonstrations in the coordinates the policy's normalisation maps (a pose
+            policy's chart: :meth:`~snds.policy.Policy.training_demonstrations`).
+        policy: The policy to train.
+        split: Which samples train.
+        config: The fit's settings.
+    """
+    samples = make_samples(demos, policy.normalization, split, window=config.window)
+    samples = samples.off_target(positions=not config.position_noise)
+    if len(samples.positions) == 0:
+        raise DataError("no training samples away from the target")
+    return samples.to(DTYPES[config.dtype], config.device)
+
+
 def fit(
     policy: StablePolicy,
     demos: Demonstrations,
@@ -349,9 +370,7 @@ def fit(
     policy.to(device=config.device, dtype=dtype)
     # In the coordinates the normalisation maps to model coordinates (a pose policy's chart).
     chart = policy.training_demonstrations(demos)
-    samples = make_samples(chart, policy.normalization, split, window=config.window).to(
-        dtype, config.device
-    )
+    samples = training_samples(chart, policy, split, config)
     policy.set_anchors(samples.positions)
     generator = torch.Generator().manual_seed(config.seed)
     optimizer = _adam(policy, config)

@@ -10,12 +10,14 @@ from __future__ import annotations
 
 import argparse
 import sys
+import warnings
 from collections.abc import Callable, Sequence
 
 import torch
 
 from snds.cli import app, benchmark, evaluate, export, plot, ros, simulate, train
 from snds.cli.train import _policy_config
+from snds.data.options import DataWarning
 from snds.errors import SNDSError
 
 __all__ = ["_build_parser", "_policy_config", "main"]
@@ -51,10 +53,25 @@ def main(argv: Sequence[str] | None = None) -> int:
     torch.set_num_threads(args.threads)
     run: Callable[[argparse.Namespace], int] = args.run
     try:
-        return run(args)
+        with warnings.catch_warnings():
+            warnings.showwarning = _show_warning(warnings.showwarning)
+            return run(args)
     except SNDSError as error:
         print(f"snds: error: {error}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("snds: interrupted", file=sys.stderr)
         return 130
+
+
+def _show_warning(fallback: Callable) -> Callable:
+    """A :func:`warnings.showwarning` that prints a :class:`DataWarning` as one line
+    ``snds: warning: ...``, and any other warning as ``fallback`` does."""
+
+    def show(message, category, filename, lineno, file=None, line=None) -> None:
+        if issubclass(category, DataWarning):
+            print(f"snds: warning: {message}", file=sys.stderr)
+        else:
+            fallback(message, category, filename, lineno, file, line)
+
+    return show

@@ -7,6 +7,7 @@ import math
 from pathlib import Path
 
 from snds.data.files import GAP_MODES
+from snds.data.options import LENGTH_UNITS, QUATERNION_ORDERS
 from snds.stability import ROLLOUTS, SAMPLES
 
 
@@ -36,7 +37,12 @@ def _end_spread(text: str) -> float:
 def _data_arguments(parser: argparse.ArgumentParser, *, required: bool) -> None:
     source = parser.add_mutually_exclusive_group(required=required)
     source.add_argument("--motion", help="a LASA handwriting motion, e.g. Sine")
-    source.add_argument("--data", type=Path, help="demonstrations: .mat, .csv or .npz")
+    source.add_argument(
+        "--data",
+        type=Path,
+        help="demonstrations: .mat, .csv, .npz, .npy, a ROS bag (.mcap, .db3, rosbag2 folder, "
+        ".bag) or a folder of bags, a LeRobot dataset folder, an HDF5 file (docs/data.md)",
+    )
     parser.add_argument(
         "--demos",
         type=_demo_choice,
@@ -56,6 +62,85 @@ def _data_arguments(parser: argparse.ArgumentParser, *, required: bool) -> None:
         default=None,
         help="a .mat file's recording gaps: fill puts the dropped samples back (default), "
         "retime only gives the jump its time, as files were read before; a model records it",
+    )
+    _reading_arguments(parser)
+
+
+def _positive(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"expected a number > 0, got {text!r}")
+    return value
+
+
+def _fraction(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not (math.isfinite(value) and 0 <= value < 1):
+        raise argparse.ArgumentTypeError(f"expected a fraction in [0, 1), got {text!r}")
+    return value
+
+
+def _names(text: str) -> list[str]:
+    return [part.strip() for part in text.split(",") if part.strip()]
+
+
+def _reading_arguments(parser: argparse.ArgumentParser) -> None:
+    """How a file is read (snds.data.ReadOptions; a model records what it was trained with)."""
+    group = parser.add_argument_group("reading a recording (docs/data.md)")
+    group.add_argument(
+        "--rate",
+        type=_positive,
+        default=None,
+        metavar="HZ",
+        help="sampling rate of a file that stores no time stamps (.npy, .mat matrix, HDF5)",
+    )
+    group.add_argument(
+        "--quaternion-order",
+        choices=QUATERNION_ORDERS,
+        default=None,
+        help="order of a quaternion's numbers in unnamed columns (.npy, .mat, HDF5, LeRobot)",
+    )
+    group.add_argument(
+        "--length-unit",
+        choices=list(LENGTH_UNITS),
+        default=None,
+        help="unit of the file's positions, converted to metres (default: kept as stored)",
+    )
+    group.add_argument(
+        "--trim-idle",
+        type=_fraction,
+        default=None,
+        metavar="F",
+        help="drop each demonstration's idle start and end, below F of its top speed "
+        "(e.g. 0.01; default 0: keep every sample)",
+    )
+    group.add_argument("--topic", default=None, help="the ROS bag topic to read")
+    group.add_argument("--frame", default=None, help="/tf: the transform's parent frame")
+    group.add_argument("--child-frame", default=None, help="/tf: the transform's child frame")
+    group.add_argument(
+        "--columns",
+        type=_names,
+        default=None,
+        metavar="C1[,C2...]",
+        help="LeRobot state columns (default observation.state)",
+    )
+    group.add_argument(
+        "--key",
+        default=None,
+        help="HDF5 obs key(s) K1[,K2], or a .mat pose matrix VARIABLE[.FIELD]",
+    )
+    group.add_argument(
+        "--split-rests",
+        type=_positive,
+        default=None,
+        metavar="SECONDS",
+        help="split one long recording into demonstrations at rests this long",
     )
 
 

@@ -16,6 +16,7 @@ from snds.data import (
     split_demos,
     split_samples,
 )
+from snds.data.options import ReadOptions
 from snds.errors import ConfigError, SNDSError
 from snds.models import load_model
 from snds.obstacles import Scene, load_scene, parse_obstacle, parse_workspace
@@ -24,6 +25,9 @@ from snds.plotting import plot_all, plot_obstacles
 from snds.policy import Policy, StablePolicy
 from snds.spaces import SE3
 from snds.stability import CheckConfig
+
+#: The reading options of :class:`~snds.data.DataSource` that flags of the same name set.
+READING_FIELDS = tuple(ReadOptions.__dataclass_fields__)
 
 
 def _scene(args: argparse.Namespace):
@@ -40,10 +44,12 @@ def _data_source(
     args: argparse.Namespace, *, poses: bool = False, seed: int = 0, phase: Phase | None = None
 ) -> DataSource:
     """The demonstrations that ``--motion`` / ``--data``, ``--demos``, ``--max-end-spread``
-    and ``--gaps`` name (the library's default gap mode where not given); with ``poses`` in
-    SE(3) (synthetic orientations seeded by ``seed`` for position data; automatic for a pose
-    file); with ``phase`` appended (:mod:`snds.phase`)."""
+    and ``--gaps`` name (the library's default gap mode where not given), read with the
+    reading flags given (``--rate``, ``--quaternion-order``, ...: :data:`READING_FIELDS`);
+    with ``poses`` in SE(3) (synthetic orientations seeded by ``seed`` for position data;
+    automatic for a pose file); with ``phase`` appended (:mod:`snds.phase`)."""
     spread = MAX_END_SPREAD if args.max_end_spread is None else args.max_end_spread
+    given = {name: getattr(args, name, None) for name in READING_FIELDS}
     return DataSource(
         motion=args.motion,
         file=args.data,
@@ -53,6 +59,7 @@ def _data_source(
         orientation_seed=seed,
         phase=phase,
         **({"gaps": args.gaps} if args.gaps else {}),
+        **{name: value for name, value in given.items() if value is not None},
     )
 
 

@@ -149,7 +149,8 @@ def register(commands: argparse._SubParsersAction) -> None:
         "--se3",
         action="store_true",
         help="learn a pose policy (position + orientation); automatic for pose files (CSV "
-        "with columns qx,qy,qz,qw, NPZ with 'quat'); position data get synthetic orientations",
+        "with columns qx,qy,qz,qw, NPZ with 'quat', poses in .npy/.mat/bags/datasets: "
+        "docs/data.md); position data get synthetic orientations",
     )
     parser.add_argument(
         "--phase-codes",

@@ -1,4 +1,5 @@
-"""Demonstrations: loading (LASA, .mat, .csv, .npz), common target, normalisation, splits."""
+"""Demonstrations: loading (LASA, .mat, .csv, .npz, .npy, ROS bags, LeRobot, HDF5), common
+target, normalisation, splits."""
 
 from snds.data.demonstrations import (
     Demonstration,
@@ -12,17 +13,22 @@ from snds.data.demonstrations import (
 )
 from snds.data.files import load_csv, load_demonstrations, load_mat, load_npz
 from snds.data.lasa import LASA_NAMES, load_lasa
+from snds.data.options import LENGTH_UNITS, QUATERNION_ORDERS, ReadOptions
+from snds.data.recordings import load_recording
 from snds.data.source import DataSource
 from snds.data.targets import MAX_END_SPREAD, common_target
 
 __all__ = [
     "MAX_END_SPREAD",
     "LASA_NAMES",
+    "LENGTH_UNITS",
+    "QUATERNION_ORDERS",
     "DataSource",
     "Demonstration",
     "DemonstrationSet",
     "Demonstrations",
     "Normalization",
+    "ReadOptions",
     "Split",
     "common_target",
     "load_csv",
@@ -30,6 +36,7 @@ __all__ = [
     "load_lasa",
     "load_mat",
     "load_npz",
+    "load_recording",
     "no_split",
     "split_demos",
     "split_samples",

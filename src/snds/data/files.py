@@ -308,7 +308,7 @@ def _assemble(
             if not 0 <= i < len(demos):
                 raise DataError(f"demonstration index {i} out of range 0..{len(demos) - 1}")
         demos = [demos[i] for i in select]
-    target, shifted = common_target(demos, max_end_spread=max_end_spread)
+    target, shifted = common_target(demos, max_end_spread=max_end_spread, indices=select)
     assembled = Demonstrations(shifted, target, name)
     # Refused here, inside the file's context, so that the message names the file.
     if assembled.extent() <= 0:

@@ -211,6 +211,7 @@ def common_pose_target(
     *,
     max_end_spread: float = MAX_END_SPREAD,
     max_end_angle: float = MAX_END_ANGLE,
+    indices: Sequence[int] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, tuple[PoseDemonstration, ...]]:
     r"""One target pose for all demonstrations, and each demonstration moved onto it.
 
@@ -226,6 +227,7 @@ def common_pose_target(
         max_end_spread: Largest distance of an end position from the target, as a fraction of
             the motion's extent.
         max_end_angle: Largest angle (radians) of an end orientation from the target's.
+        indices: The demonstrations' numbers in their file, which errors name; None: 0, 1, ...
 
     Returns:
         The target position (3,), target orientation (4,), and the moved demonstrations.
@@ -238,14 +240,23 @@ def common_pose_target(
     position_demos = [
         Demonstration(d.positions, np.zeros_like(d.positions), d.times) for d in demos
     ]
-    target_position, moved = common_target(position_demos, max_end_spread=max_end_spread)
+    target_position, moved = common_target(
+        position_demos, max_end_spread=max_end_spread, indices=indices
+    )
     ends = Rotation.from_quat(np.stack([d.orientations[-1] for d in demos]))
     target = ends.mean()
     angles = (ends * target.inv()).magnitude()
     if angles.max() > max_end_angle:
+        numbers = list(range(len(demos))) if indices is None else list(indices)
+        far = ", ".join(
+            f"demonstration {numbers[i]} ({angles[i]:.3g} rad)"
+            for i in np.argsort(-angles)
+            if angles[i] > max_end_angle
+        )
         raise DataError(
             f"demonstrations do not end at a common orientation: an end is {angles.max():.3g} rad "
-            f"from their mean, more than max_end_angle={max_end_angle:g}"
+            f"from their mean, more than max_end_angle={max_end_angle:g}: {far}; drop it with "
+            "--demos, or check the quaternion order (--quaternion-order)"
         )
     shifted = []
     for demo, position_demo in zip(demos, moved):
@@ -363,7 +374,7 @@ def load_poses(
                     raise DataError(f"demonstration index {i} out of range 0..{len(demos) - 1}")
             demos = [demos[i] for i in select]
         target_position, target_orientation, moved = common_pose_target(
-            demos, max_end_spread=max_end_spread, max_end_angle=max_end_angle
+            demos, max_end_spread=max_end_spread, max_end_angle=max_end_angle, indices=select
         )
         return PoseDemonstrations(moved, target_position, target_orientation, path.stem)
 

@@ -13,22 +13,25 @@ with synthetic orientations (:func:`~snds.data.poses.with_synthetic_orientations
     DataSource(file=Path("arm.mat"), demos=(0, 2)).load()         # demonstrations 0 and 2
     DataSource(file=Path("Messy_snake.mat"), demos=1, poses=True).load()  # lifted to SE(3)
     DataSource(file=Path("3D_sink.mat"), phase=Phase(codes=3)).load()  # with a phase (snds.phase)
+    DataSource(file=Path("pouring.npy"), rate=60, quaternion_order="wxyz", length_unit="cm")
+    DataSource(file=Path("rec.mcap"), topic="/ee_pose").load()    # a ROS 2 bag's PoseStamped
+
+The reading options (``rate`` to ``split_rests``) are those of
+:class:`~snds.data.options.ReadOptions`, and go to :func:`~snds.data.load_recording`.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 
 from snds.data.demonstrations import Demonstrations
-from snds.data.files import DEFAULT_GAPS, check_gap_mode, load_demonstrations
+from snds.data.files import DEFAULT_GAPS, check_gap_mode
 from snds.data.lasa import load_lasa
-from snds.data.poses import (
-    PoseDemonstrations,
-    is_pose_file,
-    load_poses,
-    with_synthetic_orientations,
-)
+from snds.data.options import ReadOptions
+from snds.data.poses import PoseDemonstrations, with_synthetic_orientations
+from snds.data.recordings import holds_poses, load_recording
 from snds.data.targets import MAX_END_SPREAD
 from snds.errors import DataError
 from snds.phase import Phase
@@ -45,7 +48,8 @@ class DataSource:
 
     Attributes:
         motion: A LASA motion name (case ignored); exactly one of ``motion`` and ``file``.
-        file: A demonstrations file (``.mat``, ``.csv``, ``.npz``; a pose ``.csv``/``.npz``).
+        file: A demonstrations file or folder: ``.mat``, ``.csv``, ``.npz``, ``.npy``, a ROS
+            bag or a folder of them, a LeRobot dataset, an HDF5 file (docs/data.md).
         demos: Keep the first this many demonstrations, or these ones (0-based, in order);
             None: all. From a file they are selected before the common target is chosen,
             so that a subset ending at one place can be used from a file ending at several.
@@ -58,6 +62,19 @@ class DataSource:
         orientation_seed: Seed of the synthetic orientations.
         phase: A phase appended to the positions (:class:`~snds.phase.Phase`); None: none.
             Position tasks only.
+        rate: Sampling rate (Hz) of a file without time stamps; see
+            :class:`~snds.data.options.ReadOptions` for this and the fields below.
+        quaternion_order: ``"xyzw"`` or ``"wxyz"``, for quaternions in unnamed columns.
+        length_unit: The unit of the file's positions (``"m"``, ``"cm"``, ``"mm"``, ...),
+            converted to metres; None: as stored.
+        trim_idle: Trim each demonstration's idle start and end below this fraction of its
+            top speed; 0: keep every sample.
+        topic: A ROS bag's topic.
+        frame: The parent frame of a ``/tf`` transform.
+        child_frame: The child frame of that transform.
+        columns: A LeRobot dataset's state columns.
+        key: An HDF5 ``obs`` key, or a ``.mat`` pose matrix ``variable[.field]``.
+        split_rests: Split one recording at rests of at least this many seconds.
     """
 
     motion: str | None = None
@@ -68,13 +85,28 @@ class DataSource:
     poses: bool = False
     orientation_seed: int = 0
     phase: Phase | None = None
+    rate: float | None = None
+    quaternion_order: str | None = None
+    length_unit: str | None = None
+    trim_idle: float = 0.0
+    topic: str | None = None
+    frame: str | None = None
+    child_frame: str | None = None
+    columns: tuple[str, ...] | None = None
+    key: str | None = None
+    split_rests: float | None = None
 
     def __post_init__(self) -> None:
         if (self.motion is None) == (self.file is None):
             raise DataError("a data source names either a LASA motion or a file, not both")
+        options = self.options  # validates them
+        if isinstance(self.columns, (list, str)):
+            object.__setattr__(self, "columns", options.columns)
+        if self.motion is not None and options.record():
+            raise DataError("reading options (rate, unit, ...) are for files, not LASA motions")
         if self.file is not None:
             object.__setattr__(self, "file", Path(self.file))
-            if is_pose_file(self.file):
+            if holds_poses(self.file, options):
                 object.__setattr__(self, "poses", True)
         check_gap_mode(self.gaps)
         if self.phase is not None and self.poses:
@@ -83,6 +115,22 @@ class DataSource:
             object.__setattr__(self, "demos", tuple(self.demos))
         if isinstance(self.demos, int) and self.demos < 1:
             raise DataError(f"demos must be >= 1, got {self.demos}")
+
+    @property
+    def options(self) -> ReadOptions:
+        """How the file is read."""
+        return ReadOptions(
+            rate=self.rate,
+            quaternion_order=self.quaternion_order,
+            length_unit=self.length_unit,
+            trim_idle=self.trim_idle,
+            topic=self.topic,
+            frame=self.frame,
+            child_frame=self.child_frame,
+            columns=self.columns,
+            key=self.key,
+            split_rests=self.split_rests,
+        )
 
     @property
     def name(self) -> str:
@@ -95,9 +143,18 @@ class DataSource:
         Raises:
             DataError: If the motion or file cannot be used (the message names it).
         """
-        if self.file is not None and is_pose_file(self.file):
-            return load_poses(self.file, select=self._indices(), max_end_spread=self.max_end_spread)
-        positions = self._positions()
+        if self.file is None:
+            positions = self._lasa()
+        else:
+            positions = load_recording(
+                self.file,
+                options=self.options,
+                select=self._indices(),
+                max_end_spread=self.max_end_spread,
+                gaps=self.gaps,
+            )
+            if isinstance(positions, PoseDemonstrations):
+                return positions
         if not self.poses:
             return positions if self.phase is None else self.phase.apply(positions)
         return with_synthetic_orientations(positions, seed=self.orientation_seed)
@@ -113,7 +170,7 @@ class DataSource:
                 "demos": demos,
                 "max_end_spread": self.max_end_spread,
                 "gaps": self.gaps,
-            }
+            } | self.options.record()
         if self.phase is not None:
             record["phase"] = self.phase.record()
         return record | ({"orientation_seed": self.orientation_seed} if self.poses else {})
@@ -137,6 +194,7 @@ class DataSource:
             poses=poses,
             orientation_seed=int(record.get("orientation_seed", 0)),
             phase=Phase.from_record(record["phase"]) if "phase" in record else None,
+            **dataclasses.asdict(ReadOptions.from_record(record)),
         )
 
     def _indices(self) -> list[int] | None:
@@ -144,14 +202,7 @@ class DataSource:
             return None
         return list(range(self.demos)) if isinstance(self.demos, int) else list(self.demos)
 
-    def _positions(self) -> Demonstrations:
-        if self.file is not None:
-            return load_demonstrations(
-                self.file,
-                select=self._indices(),
-                max_end_spread=self.max_end_spread,
-                gaps=self.gaps,
-            )
+    def _lasa(self) -> Demonstrations:
         loaded = load_lasa(self.motion)
         if self.demos is None:
             return loaded

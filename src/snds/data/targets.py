@@ -9,12 +9,17 @@ import numpy as np
 from snds.data.demonstrations import Demonstration
 from snds.errors import DataError
 
+__all__ = ["MAX_END_SPREAD", "common_target", "end_spread_message"]
+
 MAX_END_SPREAD = 0.25
 """Default largest distance of a demonstration's end from the common target, in extents."""
 
 
 def common_target(
-    demos: Sequence[Demonstration], *, max_end_spread: float
+    demos: Sequence[Demonstration],
+    *,
+    max_end_spread: float,
+    indices: Sequence[int] | None = None,
 ) -> tuple[np.ndarray, tuple[Demonstration, ...]]:
     r"""Picks one target for all demonstrations and moves each end exactly onto it.
 
@@ -34,6 +39,8 @@ def common_target(
         demos: The demonstrations, all of dimension n, each ending at position x_T, shape (n,).
         max_end_spread: Largest accepted distance of an end from the target, as a fraction of
             the motion's extent (the largest distance of any position from the target).
+        indices: The demonstrations' numbers in their file (0-based), which the error names;
+            None: 0, 1, ...
 
     Returns:
         The target, shape (n,), and the shifted demonstrations in the same order. Demonstrations
@@ -61,11 +68,13 @@ def common_target(
     if not (np.isfinite(spread) and np.isfinite(extent)):
         raise DataError("positions are too large to compare their end points (overflow)")
     if spread > max_end_spread * extent:
+        numbers = list(range(len(demos))) if indices is None else list(indices)
+        starts = np.stack([demo.positions[0] for demo in demos])
         raise DataError(
             f"demonstrations do not end at a common target: ends lie up to {spread:.4g} from "
             f"their mean, {spread / extent:.0%} of the motion's extent {extent:.4g}, more than "
-            f"max_end_spread={max_end_spread:g} allows; raise it (--max-end-spread) if the ends "
-            f"should be merged"
+            f"max_end_spread={max_end_spread:g} allows; "
+            + end_spread_message(ends, starts, target, extent, max_end_spread, numbers)
         )
     return target, tuple(_end_at(demo, target) for demo in demos)
 
@@ -83,3 +92,54 @@ def _end_at(demo: Demonstration, target: np.ndarray) -> Demonstration:
     # Rounding can leave the last sample an ulp away; the target must be hit exactly.
     positions[-1] = target
     return Demonstration(positions, velocities, demo.times)
+
+
+def end_spread_message(
+    ends: np.ndarray,
+    starts: np.ndarray,
+    target: np.ndarray,
+    extent: float,
+    max_end_spread: float,
+    numbers: list[int],
+) -> str:
+    """Which demonstrations end too far from the others, and the fixes.
+
+    The outliers are the ends farther than ``max_end_spread`` extents from the median of the
+    ends (per coordinate): unlike the mean, one far end does not drag it away from the rest,
+    so the message names that one, not all. A far end that lies where another
+    demonstration starts (within a tenth of the allowed spread), whose own end is not far,
+    is most likely one stroke recorded as two: the message says so.
+
+    Arguments:
+        ends: End positions, shape (k, n).
+        starts: Start positions, shape (k, n).
+        target: The mean of the ends, shape (n,) (a fallback when no end is an outlier).
+        extent: The motion's extent.
+        max_end_spread: The limit, in extents.
+        numbers: The demonstrations' numbers in their file.
+    """
+    distances = np.linalg.norm(ends - np.median(ends, axis=0), axis=-1) / extent
+    far = [int(i) for i in np.argsort(-distances) if distances[i] > max_end_spread]
+    if not far:
+        distances = np.linalg.norm(ends - target, axis=-1) / extent
+        far = [int(i) for i in np.argsort(-distances) if distances[i] > max_end_spread]
+    named = ", ".join(f"demonstration {numbers[i]} ({distances[i]:.2f} extents)" for i in far)
+    kept = [numbers[i] for i in range(len(numbers)) if i not in far]
+    fixes = []
+    for i in far:
+        gaps = np.linalg.norm(starts - ends[i], axis=-1) / extent
+        gaps[far] = np.inf
+        j = int(np.argmin(gaps))
+        if gaps[j] <= 0.1 * max_end_spread:
+            fixes.append(
+                f"demonstration {numbers[i]} ends where demonstration {numbers[j]} starts: one "
+                "stroke split in two? (in a CSV, give both parts one demo label)"
+            )
+    if kept:
+        fixes.append(
+            f"drop {'it' if len(far) == 1 else 'them'} (--demos {','.join(map(str, kept))})"
+        )
+    # The limit applies to the distance from the mean, which is what must be raised.
+    needed = np.ceil(np.linalg.norm(ends - target, axis=-1).max() / extent * 100) / 100
+    fixes.append(f"raise --max-end-spread to {needed:.2f} if the ends should be merged")
+    return f"outlying: {named}; " + "; or ".join(fixes)
