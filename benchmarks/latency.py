@@ -1,9 +1,12 @@
-"""Latency of a policy: eager PyTorch, the ONNX export in onnxruntime, and torch.export.
+"""Latency of a policy: eager PyTorch, the ONNX export in onnxruntime, torch.export, and the
+C export (``snds export --format c``, built with gcc -O2, called through ctypes).
 
 Two cases: one state per call (the control-loop case; one thread) and batches of 10,000
 states (one thread, and all cores). Each call is timed on its own with ``perf_counter_ns``;
-the table gives the median and the 99th percentile. Inputs are prepared before the clock
-starts, in each backend's own type (a torch tensor, a NumPy array).
+the table gives the median and the 99th percentile. The C rows are one state per call only
+(a batch through ctypes would time Python's loop), and include ctypes' call (about 1 us).
+Inputs are prepared before the clock starts, in each backend's own type (a torch tensor, a
+NumPy array).
 
     snds train --motion Sine --out runs/Sine          # the model (about a minute)
     python benchmarks/latency.py --model runs/Sine    # table into benchmarks/README.md
@@ -31,7 +34,7 @@ import onnxruntime
 import torch
 from _readme import cpu_name, write_readme_section
 
-from snds import export
+from snds import c_check, c_export, export
 from snds.models import load_model
 
 HERE = Path(__file__).resolve().parent
@@ -79,19 +82,45 @@ def _backends(policy, files: dict[str, Path], threads: int) -> dict[str, Callabl
         with torch.inference_mode():
             return program(x)
 
-    return {
+    backends = {
         "eager PyTorch float32": eager(eager32),
         "eager PyTorch float64": eager(eager64),
         "ONNX Runtime float32": onnx(files["onnx32"]),
         "ONNX Runtime float64": onnx(files["onnx64"]),
         "torch.export float32": exported,
     }
+    if "c" in files:
+        backends.update(_c_backends(policy, files["c"]))
+    return backends
+
+
+def _c_backends(policy, library: Path) -> dict[str, Callable]:
+    """One state through the compiled C export's ``snds_policy`` / ``snds_policy_f``."""
+    import ctypes
+
+    out = {}
+    for suffix, real, dtype in (
+        ("", ctypes.c_double, "float64"),
+        ("_f", ctypes.c_float, "float32"),
+    ):
+        function = getattr(ctypes.CDLL(str(library)), f"snds_policy{suffix}")
+        pointer = ctypes.POINTER(real)
+        function.argtypes, function.restype = [pointer, pointer], ctypes.c_int
+        result = np.zeros(policy.space.tangent_dim, dtype=dtype)
+        result_pointer = result.ctypes.data_as(pointer)
+
+        def run(x, function=function, pointer=pointer, result_pointer=result_pointer):
+            # x: one prepared state (1, n), contiguous, in the build's precision
+            function(x.ctypes.data_as(pointer), result_pointer)
+
+        out[f"C {dtype}"] = run
+    return out
 
 
 def _input(name: str, x: np.ndarray):
     dtype = np.float64 if "float64" in name else np.float32
     array = np.ascontiguousarray(x, dtype=dtype)
-    return array if name.startswith("ONNX") else torch.from_numpy(array)
+    return array if name.startswith(("ONNX", "C ")) else torch.from_numpy(array)
 
 
 def measure(
@@ -123,6 +152,8 @@ def measure(
         best_cpu: dict[str, np.ndarray] = {}
         for _ in range(rounds):
             for name, run in backends.items():
+                if name.startswith("C ") and case != "single":
+                    continue
                 prepared = _input(name, x)
                 seconds, cpu = _time(
                     lambda run=run, p=prepared: run(p), calls=count, warmup=max(count // 10, 2)
@@ -161,11 +192,16 @@ def table(rows: list[dict], checks: dict[str, dict]) -> str:
     for name in names:
         mine = {(r["case"], r["threads"]): r for r in rows if r["backend"] == name}
         one = mine[("single", 1)]
-        cells = [f"{one['median_us']:.1f} / {one['p99_us']:.1f}"]
+        cells = [f"{one['median_us']:.1f} / {one['p99_us']:.1f} (CPU {one['cpu_median_us']:.1f})"]
         for threads in [1, *multi]:
-            batch = mine[("batch", threads)]
-            cells.append(f"{batch['median_us'] / 1e3:.2f} / {batch['p99_us'] / 1e3:.2f}")
-        cells.append(f"{mine[('batch', 1)]['cpu_median_us'] / 1e3:.2f}")
+            batch = mine.get(("batch", threads))
+            cells.append(
+                "-"
+                if batch is None
+                else f"{batch['median_us'] / 1e3:.2f} / {batch['p99_us'] / 1e3:.2f}"
+            )
+        batch = mine.get(("batch", 1))
+        cells.append("-" if batch is None else f"{batch['cpu_median_us'] / 1e3:.2f}")
         check = checks.get(name)
         cells.append(
             "(reference)"
@@ -184,11 +220,17 @@ def _run(
         "onnx64": export.export_onnx(policy, folder / "policy-float64.onnx", dtype=torch.float64),
         "pt2": export.export_pt2(policy, folder / "policy-float32.pt2"),
     }
+    if c_check.compiler() is not None:
+        header = c_export.export_c(policy, folder / "policy.h")
+        files["c"] = c_check.compile_shared(header, folder / "policy.so")
     checks = {
         "ONNX Runtime float32": export.verify(files["onnx32"], policy).to_dict(),
         "ONNX Runtime float64": export.verify(files["onnx64"], policy).to_dict(),
         "torch.export float32": export.verify(files["pt2"], policy).to_dict(),
     }
+    if "c" in files:
+        double, single = c_check.verify_c(folder / "policy.h", policy)
+        checks["C float64"], checks["C float32"] = double.to_dict(), single.to_dict()
     rows = measure(policy, files, calls=calls, seed=seed, rounds=rounds, batch_calls=batch_calls)
     return rows, checks
 

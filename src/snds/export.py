@@ -58,6 +58,10 @@ TOLERANCE = {torch.float64: 1e-5, torch.float32: 3e-4}
 #: implementations may each be far from the exact policy and differ from each other by as
 #: much (docs/design.md, "Export accuracy").
 ROUNDING_SLACK = 2.0
+#: The name of the ONNX input (a state per row) and of its batch dimension; the output is
+#: :attr:`Signature.output_name`.
+INPUT_NAME = "state"
+BATCH_NAME = "batch"
 #: Spread of the random states of :func:`random_states`, in units of the demonstrations'
 #: extent: from near the data out to 1000x.
 STATE_RADII = (1.0, 3.0, 10.0, 100.0, 1000.0)
@@ -462,6 +466,11 @@ class Signature:
         self.space = policy.space
         #: Width of an input row.
         self.inputs = self.space.dim
+        #: The name of the ONNX output: "twist" for a pose (linear and angular velocity),
+        #: "velocity" otherwise (a phase model's velocity ends with the phase rate).
+        self.output_name = (
+            "twist" if "angular_velocity" in self.space.velocity_names else "velocity"
+        )
         #: What the graph maps to what, in words.
         self.description = (
             f"(B, {self.space.dim}) {self.space.state_text} -> "
@@ -639,9 +648,12 @@ def export_onnx(
             "ONNX export needs onnx and onnxscript: pip install 'snds[export]'"
         ) from error
     program = _trace(policy, dtype)
+    kind = signature(policy)
     with _quiet_exporter():
         onnx_program = torch.onnx.export(
             program,
+            input_names=[INPUT_NAME],
+            output_names=[kind.output_name],
             dynamo=True,
             optimize=True,
             verbose=False,
@@ -654,6 +666,9 @@ def export_onnx(
             },
         )
     model = onnx_program.model_proto
+    # The exporter names the batch dimension after its symbol (s77): a controller reads it.
+    for value in [*model.graph.input, *model.graph.output]:
+        value.type.tensor_type.shape.dim[0].dim_param = BATCH_NAME
     metadata = {
         **signature(policy).metadata(),
         "snds.dtype": str(dtype).removeprefix("torch."),
@@ -932,6 +947,11 @@ def random_states(policy: Policy, count: int, *, seed: int = 0) -> np.ndarray:
     return signature(policy).random_inputs(count, np.random.default_rng(seed))
 
 
+#: The box of the data, in extents around the target (half-width): :class:`Check` reports the
+#: differences inside it and beyond it apart, since far states have far larger velocities.
+DATA_BOX = 1.0
+
+
 @dataclass(frozen=True)
 class Check:
     """The comparison of an exported model with the library.
@@ -949,8 +969,14 @@ class Check:
             the same scale: the rounding that precision costs the library itself.
         max_abs_diff: Largest absolute difference of a velocity component, user units (of a
             twist's component for a pose policy: user units/s or rad/s).
-        max_abs_diff_near: The same over the states within 3x the extent (a pose policy:
-            whose position is).
+        max_error_near: ``max_error`` over the states in the data's box (:data:`DATA_BOX`
+            extents around the target; a pose policy: whose position is).
+        max_abs_diff_near: ``max_abs_diff`` over those states.
+        max_error_far: ``max_error`` over the states beyond the data's box (out to
+            1000 extents).
+        max_abs_diff_far: ``max_abs_diff`` over those states.
+        max_speed_far: The largest velocity component there (what ``max_abs_diff_far`` is a
+            difference of).
         tolerance: The accepted ``max_error``.
         passed: Whether ``max_error <= tolerance``, or, for a float32 export, whether
             ``max_error_float64 <= max(tolerance, ROUNDING_SLACK * library_error)``: the
@@ -965,13 +991,26 @@ class Check:
     max_error_float64: float
     library_error: float
     max_abs_diff: float
+    max_error_near: float
     max_abs_diff_near: float
+    max_error_far: float
+    max_abs_diff_far: float
+    max_speed_far: float
     tolerance: float
     passed: bool
 
     def to_dict(self) -> dict:
         """JSON-ready form."""
         return asdict(self)
+
+    def summary(self) -> str:
+        """The differences in words, the data's box and far out apart."""
+        return (
+            f"largest difference from the library ({self.dtype}, {self.samples} random states): "
+            f"in the data's box {self.max_error_near:.2e} relative, {self.max_abs_diff_near:.2e} "
+            f"absolute; beyond it, out to 1000x the extent, {self.max_error_far:.2e} relative, "
+            f"{self.max_abs_diff_far:.2e} absolute (of velocities up to {self.max_speed_far:.2e})"
+        )
 
 
 def verify(
@@ -999,17 +1038,44 @@ def verify(
         The comparison.
     """
     path = Path(path)
-    kind = signature(policy)
     run = load_onnx(path) if path.suffix == ".onnx" else load_pt2(path)
     probe = np.asarray(run(random_states(policy, 1, seed=seed)))
     dtype = torch.float64 if probe.dtype == np.float64 else torch.float32
+    return compare(
+        run, policy, path=path, dtype=dtype, samples=samples, seed=seed, tolerance=tolerance
+    )
+
+
+def compare(
+    run: Callable[[np.ndarray], np.ndarray],
+    policy: Policy,
+    *,
+    path: str | Path,
+    dtype: torch.dtype,
+    samples: int = 10_000,
+    seed: int = 0,
+    tolerance: float | None = None,
+) -> Check:
+    """Compares a function of states (B, space.dim) -> velocities, in ``dtype``, with the
+    library in the same precision on :func:`random_states` (see :func:`verify`).
+
+    Arguments:
+        run: The exported policy.
+        policy: The policy it was exported from.
+        path: The file it came from (recorded).
+        dtype: Its precision.
+        samples: Number of states.
+        seed: Their seed.
+        tolerance: Accepted relative difference; :data:`TOLERANCE` of the dtype by default.
+    """
+    kind = signature(policy)
     states = random_states(policy, samples, seed=seed).astype(_NUMPY[dtype])
     exported = np.asarray(run(states), dtype=np.float64)
     with torch.no_grad():
         reference = kind.library(torch.as_tensor(states)).double().numpy()
         exact = kind.library(torch.as_tensor(states).double()).numpy()
     difference = np.abs(exported - reference)
-    near = kind.extents(states) <= 3
+    near = kind.extents(states) <= DATA_BOX
     max_error = _relative_error(exported, reference, policy)
     if not np.all(np.isfinite(exported)):
         max_error = math.inf
@@ -1019,6 +1085,10 @@ def verify(
     passed = max_error <= limit or (
         dtype == torch.float32 and max_error_float64 <= max(limit, ROUNDING_SLACK * library_error)
     )
+
+    def largest(values: np.ndarray) -> float:
+        return float(values.max()) if values.size else 0.0
+
     return Check(
         path=str(path),
         dtype=str(dtype).removeprefix("torch."),
@@ -1027,8 +1097,12 @@ def verify(
         max_error=max_error,
         max_error_float64=max_error_float64,
         library_error=library_error,
-        max_abs_diff=float(difference.max()) if difference.size else 0.0,
-        max_abs_diff_near=float(difference[near].max()) if near.any() else 0.0,
+        max_abs_diff=largest(difference),
+        max_error_near=_relative_error(exported[near], reference[near], policy),
+        max_abs_diff_near=largest(difference[near]),
+        max_error_far=_relative_error(exported[~near], reference[~near], policy),
+        max_abs_diff_far=largest(difference[~near]),
+        max_speed_far=largest(np.abs(reference[~near])),
         tolerance=float(limit),
         passed=bool(passed),
     )

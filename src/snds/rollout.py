@@ -10,6 +10,7 @@ import torch
 from torch import Tensor
 
 from snds.policy import Policy
+from snds.spaces import Space
 
 Field = Callable[[Tensor], Tensor]
 
@@ -229,26 +230,61 @@ def policy_guard(policy: Policy) -> tuple[Lyapunov, Rate]:
     return lyapunov, rate
 
 
+def speed_scale(space: Space, velocity: Tensor, max_speed: float | None) -> Tensor:
+    r"""The factor :math:`s = \min(1, v_{max} / |v_p|)` of each velocity (B, tangent_dim)
+    that brings the speed of its positions :math:`|v_p|` (the first ``space.position_dim``
+    numbers: a pose's linear velocity, a phase model's positions) down to ``max_speed``, shape
+    (B,); 1 everywhere for None.
+
+    Scaling the whole velocity by :math:`s > 0` keeps the guarantee: :math:`\nabla V^\top
+    (s \pi) \le -s a(x) < 0` (docs/guarantee.md, "Speed limit").
+    """
+    if max_speed is None:
+        return torch.ones_like(velocity[:, 0])
+    if not max_speed > 0:
+        raise ValueError(f"max_speed must be positive, got {max_speed}")
+    speed = velocity[:, : space.position_dim].norm(dim=-1)
+    return torch.where(speed > max_speed, max_speed / torch.where(speed > 0, speed, 1.0), 1.0)
+
+
 @torch.no_grad()
-def safe_velocity(policy: Policy, x: Tensor, dt: float) -> tuple[Tensor, Tensor]:
+def safe_velocity(
+    policy: Policy, x: Tensor, dt: float, *, max_speed: float | None = None
+) -> tuple[Tensor, Tensor]:
     """The policy's velocities at states x (B, space.dim), each scaled by h / dt for the
-    guarded step h <= dt along its space (:func:`guarded_step`).
+    guarded step h <= dt along its space (:func:`guarded_step`), and first, with
+    ``max_speed``, by :func:`speed_scale`.
 
     A controller that holds a velocity for one period dt moves the state by about
     ``policy.space.advance(x, dt, velocity)``; scaled so, that step meets the guard's
     sufficient-decrease condition, and a stiff field cannot make a robot chatter on a
-    discrete cycle at constant V. A policy without V keeps its velocities (h = dt).
+    discrete cycle at constant V. A policy without V keeps its velocities (h = dt). Under a
+    speed limit the velocity s pi promises the decrease rate s a(x), and the guard asks that
+    of it.
+
+    Arguments:
+        policy: The policy.
+        x: States, shape (B, space.dim), user units.
+        dt: The control period, seconds.
+        max_speed: Largest speed of the positions, user units per second (None: no limit).
 
     Returns:
         The scaled velocities, shape (B, space.tangent_dim), and h, shape (B,).
     """
     velocity = policy(x)
+    scale = speed_scale(policy.space, velocity, max_speed)
+    velocity = velocity * scale.unsqueeze(-1)
     h = torch.full_like(velocity[:, 0], dt)
     if policy.stable:
         lyapunov, rate = policy_guard(policy)
         # The velocity is evaluated once: the guarded step only asks for it at x.
         _, h, _ = guarded_step(
-            lambda _: velocity, lyapunov, x, dt=dt, rate=rate, advance=policy.space.advance
+            lambda _: velocity,
+            lyapunov,
+            x,
+            dt=dt,
+            rate=lambda states, value: scale * rate(states, value),
+            advance=policy.space.advance,
         )
     return velocity * (h / dt).unsqueeze(-1), h
 

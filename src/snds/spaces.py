@@ -43,6 +43,8 @@ class Space(ABC):
         tangent_dim: Numbers per velocity row.
         position_dim: The leading numbers of a state that are a position (what DTW and the
             path plots compare).
+        phase_dim: The trailing numbers of a state that are a phase (:mod:`snds.phase`; 0:
+            none). A pose has more numbers than its position and no phase.
         error_names: Names of the components of :meth:`errors`; the first is always the
             distance of the positions.
         velocity_names: Names of the blocks of a velocity row, the first the positions' own
@@ -57,6 +59,7 @@ class Space(ABC):
     dim: int
     tangent_dim: int
     position_dim: int
+    phase_dim: ClassVar[int] = 0
     error_names: tuple[str, ...]
     velocity_names: tuple[str, ...]
     velocity_sizes: tuple[int, ...]

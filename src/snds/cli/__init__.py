@@ -2,8 +2,8 @@
 
 One module per subcommand (:mod:`snds.cli.train`, :mod:`~snds.cli.evaluate`,
 :mod:`~snds.cli.plot`, :mod:`~snds.cli.benchmark`, :mod:`~snds.cli.simulate`,
-:mod:`~snds.cli.export`, :mod:`~snds.cli.app`), each with ``register(commands)``, which adds
-its sub-parser, and ``run(args) -> int``.
+:mod:`~snds.cli.export`, :mod:`~snds.cli.ros`, :mod:`~snds.cli.app`), each with
+``register(commands)``, which adds its sub-parser, and ``run(args) -> int``.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from collections.abc import Callable, Sequence
 
 import torch
 
-from snds.cli import app, benchmark, evaluate, export, plot, simulate, train
+from snds.cli import app, benchmark, evaluate, export, plot, ros, simulate, train
 from snds.cli.train import _policy_config
 from snds.data.options import DataWarning
 from snds.errors import SNDSError
@@ -23,7 +23,7 @@ from snds.errors import SNDSError
 __all__ = ["_build_parser", "_policy_config", "main"]
 
 #: The subcommands, in the order ``snds --help`` lists them.
-COMMANDS = (train, evaluate, plot, benchmark, simulate, export, app)
+COMMANDS = (train, evaluate, plot, benchmark, simulate, export, ros, app)
 
 
 def _build_parser() -> argparse.ArgumentParser:

@@ -68,6 +68,12 @@ def register(commands: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--out", type=Path, default=None, help="results folder (default: MODEL/sim-ROBOT)"
     )
+    parser.add_argument(
+        "--max-speed",
+        type=float,
+        default=None,
+        help="speed limit of the task's positions (user units/s); the guarantee holds under it",
+    )
     _obstacle_arguments(parser)
     parser.set_defaults(run=run)
 
@@ -124,6 +130,7 @@ def run(args: argparse.Namespace) -> int:
         angle_tolerance=args.angle_tolerance,
         push=args.push,
         obstacles=scene,
+        max_speed=args.max_speed,
     )
     # A state of the model's space: a position, or for a pose model position and quaternion.
     start = demos[args.start_demo].states[0]

@@ -87,6 +87,8 @@ class SimConfig:
         hold_gain: Gain (1/s) of the holds on what a position policy does not drive: the
             orientation, and for a 2-D task the distance off the work plane.
         gravity: Whether gravity acts on the arm.
+        max_speed: Speed limit of the task's positions, user units/s (None: none;
+            :func:`snds.rollout.safe_velocity`).
     """
 
     robot: str = "iiwa"
@@ -100,10 +102,13 @@ class SimConfig:
     obstacles: Scene | None = None
     hold_gain: float = 5.0
     gravity: bool = True
+    max_speed: float | None = None
 
     def __post_init__(self) -> None:
         if self.scale is not None and not self.scale > 0:
             raise SimulationError(f"the scale must be positive, got {self.scale}")
+        if self.max_speed is not None and not self.max_speed > 0:
+            raise SimulationError(f"--max-speed must be positive, got {self.max_speed}")
         if not (self.control_rate > 0 and self.substeps >= 1 and self.time_limit > 0):
             raise SimulationError("control rate, substeps and time limit must be positive")
         if not self.tolerance > 0:
@@ -317,7 +322,12 @@ class PositionCommander:
                 _, h, velocity = avoid_step(self.policy, scene, state, dt=dt, guard=self.guard)
                 velocity = velocity * (h / dt).unsqueeze(-1)
             else:
-                velocity = safe_velocity(self.policy, state, 1.0 / self.config.control_rate)[0]
+                velocity = safe_velocity(
+                    self.policy,
+                    state,
+                    1.0 / self.config.control_rate,
+                    max_speed=self.config.max_speed,
+                )[0]
         return velocity[0].numpy()
 
     def _world_twist(self, pose: EndEffector, velocity: np.ndarray) -> np.ndarray:
@@ -455,7 +465,9 @@ class PoseCommander:
         position, orientation = self.pose_placement.to_task(pose.position, pose.orientation)
         x = torch.as_tensor(np.concatenate([position, orientation]))[None]
         with torch.no_grad():
-            twist = safe_velocity(self.policy, x, 1.0 / self.config.control_rate)[0][0]
+            twist = safe_velocity(
+                self.policy, x, 1.0 / self.config.control_rate, max_speed=self.config.max_speed
+            )[0][0]
             scene = self.config.obstacles
             if scene is not None:
                 # The position part goes around the obstacles; the whole twist is shortened
