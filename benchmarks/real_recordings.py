@@ -60,8 +60,8 @@ TASKS: dict[str, list[str]] = {
     "Messy_snake": ["Messy_snake.mat"],
     "3D_Cshape_top": ["3D_Cshape_top.mat"],
     "3D_viapoint_1": ["3D_viapoint_1.mat"],
-    "3D-pick-box_(0,2)": ["3D-pick-box.mat", "--demos", "0,2"],
-    "3D-pick-box_(1,3)": ["3D-pick-box.mat", "--demos", "1,3"],
+    "3D-pick-box_0-2": ["3D-pick-box.mat", "--demos", "0,2"],
+    "3D-pick-box_1-3": ["3D-pick-box.mat", "--demos", "1,3"],
     "3D_sink": ["3D_sink.mat"],
     "pouring": [
         "clfd/pouring.npy",

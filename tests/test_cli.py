@@ -52,7 +52,9 @@ def test_train_writes_model_metrics_and_config(trained):
     assert description["train"]["position_noise"] == 0.0015
     assert description["train"]["warp_weight"] == 0.001
     assert description["train"]["nominal_weight"] == 0.01
-    assert description["data"] == {"motion": "Sine", "demos": 3}
+    # the default phase (snds.phase), recorded so that every command rebuilds it
+    assert description["data"] == {"motion": "Sine", "demos": 3, "phase": {"codes": 3, "seed": 0}}
+    assert description["policy"]["phase_dim"] == 3 and description["dim"] == 5
 
 
 def test_evaluate_rewrites_the_same_metrics(trained):
@@ -68,7 +70,22 @@ def test_evaluate_rewrites_the_same_metrics(trained):
 def test_plot_writes_pngs(trained, tmp_path):
     assert main(["--quiet", "plot", str(trained), "--out", str(tmp_path)]) == 0
     pngs = sorted(p.name for p in tmp_path.glob("*.png"))
-    assert "streamlines.png" in pngs and "lyapunov.png" in pngs
+    # A default model has a phase: the streamlines of a new start's field and the paths; V's
+    # contours over the plane would hide the phase.
+    assert pngs == ["loss.png", "paths.png", "rollout_lyapunov.png", "streamlines.png"]
+
+
+def test_plot_of_a_model_without_a_phase_draws_v(tmp_path):
+    fast = ["--steps", "30", "--rollouts", "10", "--samples", "200", "--phase-codes", "0"]
+    out = tmp_path / "plain"
+    assert (
+        main(["--quiet", "train", "--motion", "Sine", "--demos", "2", "--out", str(out), *fast])
+        == 0
+    )
+    assert "phase" not in json.loads((out / "model.json").read_text())["data"]
+    assert main(["--quiet", "plot", str(out), "--out", str(tmp_path / "plots")]) == 0
+    pngs = sorted(p.name for p in (tmp_path / "plots").glob("*.png"))
+    assert pngs == ["loss.png", "lyapunov.png", "rollout_lyapunov.png", "streamlines.png"]
 
 
 @pytest.mark.parametrize(

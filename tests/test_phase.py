@@ -16,7 +16,7 @@ from snds.errors import ConfigError, DataError
 from snds.evaluate import evaluate
 from snds.method import make_policy
 from snds.models import load_model, save_model
-from snds.phase import Phase, phase_step, start_state
+from snds.phase import Phase, phase_step, start_state, start_states
 from snds.rollout import rollout_numpy
 from snds.spaces import SE3, Euclidean, Phased
 from snds.stability import CheckConfig
@@ -105,14 +105,21 @@ def test_a_phase_follows_a_pose_and_runs_to_zero():
 
 def test_start_state_takes_the_nearest_samples_phase_beside_the_data_and_0_away(phased):
     # GIVEN a start a hair beside a sample in the middle of demonstration 1
-    sample = phased[1].states[300]
-    state = start_state(phased, sample[:2] + 0.001 * phased.extent())
-    # THEN it takes that sample's phase
-    np.testing.assert_array_equal(state[:2], sample[:2] + 0.001 * phased.extent())
-    np.testing.assert_array_equal(state[2:], sample[2:])
+    position = phased[1].states[300, :2] + 0.001 * phased.extent()
+    state = start_state(phased, position)
+    # THEN it takes the phase of the demonstrated sample nearest to it (by brute force)
+    samples = np.concatenate([demo.states for demo in phased])
+    nearest = samples[np.argmin(np.linalg.norm(samples[:, :2] - position, axis=1))]
+    np.testing.assert_array_equal(state, np.concatenate([position, nearest[2:]]))
+    assert np.linalg.norm(state[2:]) > 0
     # AND a start further than the reach from every sample gets phase 0
     far = phased.target[:2] + 3.0 * phased.extent()
     np.testing.assert_array_equal(start_state(phased, far)[2:], 0.0)
+    # AND many starts at once are the same as one at a time
+    many = np.stack([position, far])
+    np.testing.assert_array_equal(
+        start_states(phased, many), np.stack([start_state(phased, x) for x in many])
+    )
     with pytest.raises(DataError, match="shape"):
         start_state(phased, np.zeros(3))
 
@@ -223,9 +230,10 @@ def test_cli_train_evaluate_plot_export_with_a_phase(tmp_path, capsys):
     assert record["policy"]["phase_dim"] == 2 and record["dim"] == 4
     assert main(["--quiet", "evaluate", str(out), "--rollouts", "50", "--samples", "2000"]) == 0
     assert main(["--quiet", "plot", str(out), "--out", str(tmp_path / "plots")]) == 0
-    # A field of the plane would hide the phase: paths without streamlines.
+    # The streamlines are the field a new start begins with; V over the plane would hide the
+    # phase.
     written = sorted(p.name for p in (tmp_path / "plots").iterdir())
-    assert written == ["loss.png", "paths.png", "rollout_lyapunov.png"]
+    assert written == ["loss.png", "paths.png", "rollout_lyapunov.png", "streamlines.png"]
     # Obstacles are refused with one line, for every command that takes them.
     sphere = ["--obstacle", "sphere:-20,0,3"]
     assert main(["--quiet", "evaluate", str(out), *sphere]) == 2

@@ -15,7 +15,7 @@ from snds.data.poses import load_poses
 from snds.errors import DataError, ModelFileError, SNDSError
 from snds.method import make_policy
 from snds.models import load_model, save_model
-from snds.phase import Phase
+from snds.phase import Phase, start_state
 from snds.policy import PolicyConfig, StablePolicy, project
 from snds.recipes import RECIPES, Recipe
 from snds.se3 import PosePolicy
@@ -52,4 +52,5 @@ __all__ = [
     "project",
     "save_model",
     "split_samples",
+    "start_state",
 ]

@@ -29,11 +29,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from snds.data.demonstrations import DemonstrationSet
 from snds.errors import ConfigError, DataError
 
-__all__ = ["START_REACH", "Phase", "phase_step", "start_state"]
+__all__ = ["START_REACH", "Phase", "phase_step", "start_state", "start_states"]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -116,19 +117,33 @@ def start_state(
     Returns:
         The start state, shape (b + m,).
     """
-    m = demos.phase_dim
-    b = len(demos.target) - m
+    b = len(demos.target) - demos.phase_dim
     position = np.asarray(position, dtype=np.float64)
     if position.shape != (b,):
         raise DataError(
             f"a start has shape ({b},) (the state without its phase), got {position.shape}"
         )
-    p = demos.position_dim
+    return start_states(demos, position[None], reach=reach)[0]
+
+
+def start_states(
+    demos: DemonstrationSet, positions: np.ndarray, *, reach: float = START_REACH
+) -> np.ndarray:
+    """:func:`start_state` of many base states at once, shape (B, b) -> (B, b + m)."""
+    m, p = demos.phase_dim, demos.position_dim
+    b = len(demos.target) - m
+    positions = np.asarray(positions, dtype=np.float64).reshape(-1, b)
     samples = np.concatenate([demo.states for demo in demos])
-    distance = np.linalg.norm(samples[:, :p] - position[:p], axis=1)
-    nearest = int(np.argmin(distance))
-    near = distance[nearest] <= reach * demos.extent()
-    return np.concatenate([position, samples[nearest, b:] if near else np.zeros(m)])
+    nearest, distance = _nearest(samples[:, :p], positions[:, :p])
+    near = distance <= reach * demos.extent()
+    phases = np.where(near[:, None], samples[nearest, b:], 0.0)
+    return np.concatenate([positions, phases], axis=1)
+
+
+def _nearest(references: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The index of the reference nearest to each point and its distance, shapes (B,)."""
+    distance, index = cKDTree(references).query(points)
+    return index, distance
 
 
 def phase_step(

@@ -27,6 +27,7 @@ from snds.data.demonstrations import Demonstrations
 from snds.io import atomic_write
 from snds.obstacles import ModulatedPolicy, rollout_numpy_avoiding
 from snds.parallel import torch_threads
+from snds.phase import start_states
 from snds.policy import Policy
 from snds.rollout import rollout_numpy
 from snds.stability import CheckConfig
@@ -56,7 +57,10 @@ def plot_streamlines(
     perturbed: np.ndarray | None = None,
     title: str | None = None,
 ) -> Path:
-    """Streamlines of the policy with the demonstrations, rollouts and the target.
+    """Streamlines of the policy with the demonstrations, rollouts and the target. With a
+    phase in the state (:mod:`snds.phase`), the streamlines are those of the velocity a new
+    start at each point begins with (:func:`snds.phase.start_states`); the rollouts are the
+    whole motions.
 
     Arguments:
         policy: The policy, float64 and in eval mode.
@@ -69,8 +73,11 @@ def plot_streamlines(
     Returns:
         The path written.
     """
-    starts = [r[:, 0] for r in (rollouts, perturbed) if r is not None]
+    starts = [r[:, :, : demos.position_dim][:, 0] for r in (rollouts, perturbed) if r is not None]
     (x1, x2), points = _plane(demos, include=starts)
+    if demos.phase_dim:
+        # With a phase, the field of the plane is the one a new start there begins with.
+        points = start_states(demos, points[:, : len(demos.target) - demos.phase_dim])
     fig, ax = _figure(x1, x2)
     stream = _draw_field(ax, policy, x1, x2, points)
     colorbar = fig.colorbar(
@@ -81,7 +88,10 @@ def plot_streamlines(
     _draw_paths(ax, demos, rollouts, perturbed)
     projected = rollouts is not None or perturbed is not None
     title = title if title is not None else _name(demos, policy)
-    _finish(ax, x1, x2, demos.dim, title, projected=projected)
+    if demos.phase_dim:
+        _finish(ax, x1, x2, 2, f"{title}\nfield at a new start's phase", projected=projected)
+    else:
+        _finish(ax, x1, x2, demos.dim, title, projected=projected)
     _legend(fig, ax)
     return _save(fig, path)
 
@@ -396,7 +406,8 @@ def plot_all(
         seed: Seed of the perturbations.
 
     Returns:
-        The paths written: for a position policy ``streamlines.png``, then ``lyapunov.png``;
+        The paths written: for 2-D positions ``streamlines.png`` (with a phase, of the velocity
+        a new start takes), then for positions alone ``lyapunov.png``;
         ``rollout_lyapunov.png`` for a stable policy; ``paths.png`` when 2-D positions are
         part of a larger state (a phase); ``paths3d.png`` when positions are 3-D (with
         orientation frames for poses); then ``loss.png``.
@@ -415,6 +426,10 @@ def plot_all(
     spread = space.uniform(np.asarray(demos.target), 0.0, 6, rng)
     spread[:, :p] = rng.uniform(low, high, size=(6, p))
     perturbed_starts = np.concatenate([moved, spread])
+    if demos.phase_dim:
+        # A new start takes its phase as a controller gives it one (snds.phase.start_state).
+        base = len(demos.target) - demos.phase_dim
+        perturbed_starts = start_states(demos, perturbed_starts[:, :base])
     # One batch for both sets of starts: a step costs about the same for 7 states as for 20.
     both, arrived = rollouts_until_arrival(
         policy, demos, np.concatenate([starts, perturbed_starts]), dt=dt
@@ -423,7 +438,7 @@ def plot_all(
 
     paths = []
     positions_only = space.dim == p
-    if positions_only:
+    if p == 2:
         paths.append(
             plot_streamlines(
                 policy, demos, out / "streamlines.png", rollouts=rollouts, perturbed=perturbed

@@ -33,18 +33,18 @@ class Recipe:
 
     policy: PolicyConfig = field(default_factory=PolicyConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
-    phase: Phase | None = None
+    phase: Phase | None = field(default_factory=Phase)
 
 
 #: The presets by name.
 #:
-#: - ``default``: the library's defaults, for positions in R^n.
+#: - ``default``: the library's defaults, for positions in R^n and poses in SE(3), with a
+#:   phase of 3 codes in the state (:class:`snds.phase.Phase`).
 #: - ``compact``: smaller networks (hidden (64, 64), 64 Fourier features), for controllers
 #:   that evaluate large batches.
-#: - ``pose``: the training settings of SE(3) pose models: V's shape penalty on
-#:   (``shape_weight`` 0.01), no noise on the training states (``position_noise`` 0) and no
-#:   noise correction (a nearest sample over positions and rotation vectors at once would
-#:   mix units), no alignment term (``align_weight`` 0).
+#: - ``pose``: the former training settings of SE(3) pose models, kept for their models:
+#:   V's shape penalty on (``shape_weight`` 0.01), no noise on the training states
+#:   (``position_noise`` 0), no noise correction, no alignment term (``align_weight`` 0).
 RECIPES: dict[str, Recipe] = {
     "default": Recipe(),
     "compact": Recipe(policy=PolicyConfig(hidden=(64, 64), fourier_features=64)),
@@ -65,5 +65,5 @@ SPACE_RECIPES: dict[type[Space], str] = {Euclidean: "default", Phased: "default"
 
 def recipe_for(space: Space) -> Recipe:
     """The recipe a policy in ``space`` trains with by default (:data:`SPACE_RECIPES`):
-    ``default`` for positions (with a phase or not), ``pose`` for SE(3)."""
+    ``default`` for positions and poses, with a phase or not."""
     return RECIPES[SPACE_RECIPES[type(space)]]

@@ -25,6 +25,7 @@ from snds.app import LIMITS, create_app  # noqa: E402
 from snds.app.strokes import parse_strokes  # noqa: E402
 from snds.cli import main  # noqa: E402
 from snds.models import load_model  # noqa: E402
+from snds.phase import start_states  # noqa: E402
 from snds.policy import float64_copy  # noqa: E402
 from snds.rollout import policy_guard  # noqa: E402
 
@@ -151,11 +152,15 @@ def test_field_equals_the_policy_on_the_same_grid(client, trained) -> None:
     assert np.array_equal(ys, np.linspace(-60, 70, 13))
     points = np.stack(np.meshgrid(xs, ys), axis=-1).reshape(-1, 2)
     policy = _policy(client, job)
-    expected = policy.predict(points).reshape(13, 17, 2)
+    # The default model has a phase: a point's velocity is the one a new start there takes.
+    demos = _job(client, job).extra["demos"]
+    assert demos.phase_dim == 3
+    states = start_states(demos, points)
+    expected = policy.predict(states)[:, :2].reshape(13, 17, 2)
     np.testing.assert_allclose(field["velocity"], expected, rtol=1e-12, atol=1e-12)
     lyapunov, _ = policy_guard(policy)
     with torch.no_grad():
-        values = lyapunov(torch.from_numpy(points)).numpy().reshape(13, 17)
+        values = lyapunov(torch.from_numpy(states)).numpy().reshape(13, 17)
     np.testing.assert_allclose(field["V"], values, rtol=1e-12, atol=1e-15)
     assert np.array(field["V"]).min() >= 0
 
@@ -178,9 +183,12 @@ def test_rollout_reaches_the_target_and_recovers_from_a_push(client, trained) ->
     assert len(jumps) == 1 and times[jumps[0]] >= 0.3
     np.testing.assert_allclose(states[jumps[0] + 1] - states[jumps[0]], push)
     # AND every guarded step decreased V (the push may not)
+    # (the whole states: a push moves the position, the phase keeps its value)
+    whole = np.concatenate([states, np.array(answer["phases"])], axis=1)
+    np.testing.assert_array_equal(whole[jumps[0] + 1, 2:], whole[jumps[0], 2:])
     lyapunov, _ = policy_guard(_policy(client, job))
     with torch.no_grad():
-        values = lyapunov(torch.from_numpy(states)).numpy()
+        values = lyapunov(torch.from_numpy(whole)).numpy()
     assert (np.delete(np.diff(values), jumps[0]) < 0).all()
 
 
@@ -219,7 +227,8 @@ def test_onnx_download_computes_the_policy(client, trained, tmp_path: Path) -> N
     assert answer.status_code == 200, answer.text
     path = tmp_path / "policy.onnx"
     path.write_bytes(answer.content)
-    states = np.random.default_rng(0).uniform(-100, 100, size=(200, 2))
+    points = np.random.default_rng(0).uniform(-100, 100, size=(200, 2))
+    states = start_states(_job(client, job).extra["demos"], points)
     policy = _policy(client, job)
     expected = policy.predict(states)
     got = load_onnx(path)(states.astype(np.float32))

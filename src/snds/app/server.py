@@ -60,6 +60,7 @@ from snds.app.strokes import (
     demonstrations_from_csv,
     parse_strokes,
     parse_target,
+    parse_vector,
     strokes_from_csv,
     write_csv,
 )
@@ -71,6 +72,7 @@ from snds.errors import SNDSError
 from snds.evaluate import reproduce
 from snds.io import to_jsonable
 from snds.models import load_model
+from snds.phase import Phase, start_states
 from snds.policy import PolicyConfig, StablePolicy, float64_copy
 from snds.rollout import guarded_step, policy_guard
 
@@ -241,9 +243,13 @@ def _warm_up() -> None:
 
 def _load_results(job: Job) -> None:
     """Reads a job's saved model and data (in the job's watcher thread, once)."""
-    policy, _ = load_model(job.model)
+    policy, description = load_model(job.model)
     policy64 = float64_copy(policy)
     demos = demonstrations_from_csv(job.model / STROKES_FILE, shown_as=STROKES_FILE)
+    phase = description.get("data", {}).get("phase")
+    if phase is not None:
+        # The model's states carry the phase it was trained with (snds.phase).
+        demos = Phase.from_record(phase).apply(demos)
     paths = reproduce(policy64, demos, list(range(len(demos))))
     extent = demos.extent()
     job.extra.update(
@@ -251,9 +257,9 @@ def _load_results(job: Job) -> None:
         demos=demos,
         result={
             "stable": policy64.stable,
-            "target": demos.target,
-            "demos": [d.positions for d in demos],
-            "reproductions": paths,
+            "target": demos.target[:2],
+            "demos": [d.positions[:, :2] for d in demos],
+            "reproductions": [path[:, :2] for path in paths],
             "dt": demos.mean_dt(),
             "duration": demos.max_duration(),
             "extent": extent,
@@ -289,17 +295,35 @@ def _grid(body: dict, limits: Limits) -> tuple[np.ndarray, np.ndarray]:
     return np.linspace(x0, x1, nx), np.linspace(y0, y1, ny)
 
 
+def _states(job: Job, points: np.ndarray) -> np.ndarray:
+    """The states a start at each point (B, 2) takes: the point, with a model's phase the
+    phase a new start there gets (:func:`snds.phase.start_states`)."""
+    demos = job.extra["demos"]
+    return start_states(demos, points) if demos.phase_dim else points
+
+
 @torch.no_grad()
 def field_on_grid(job: Job, xs: np.ndarray, ys: np.ndarray) -> dict:
-    """Velocities (ny, nx, 2) and V (ny, nx; None without one) of a job's policy on a grid."""
+    """Velocities (ny, nx, 2) and V (ny, nx; None without one) of a job's policy on a grid:
+    for a model with a phase, the velocity a new start at each point begins with."""
     policy = job.extra["policy"]
-    points = np.stack(np.meshgrid(xs, ys), axis=-1).reshape(-1, 2)
-    velocity = policy.predict(points).reshape(len(ys), len(xs), 2)
+    points = _states(job, np.stack(np.meshgrid(xs, ys), axis=-1).reshape(-1, 2))
+    velocity = policy.predict(points)[:, :2].reshape(len(ys), len(xs), 2)
     value = None
     if policy.stable:
         lyapunov, _ = policy_guard(policy)
         value = lyapunov(torch.from_numpy(points)).numpy().reshape(len(ys), len(xs))
     return {"x": xs, "y": ys, "velocity": velocity, "V": value}
+
+
+def _phase(raw: Any, job: Job, limits: Limits) -> np.ndarray | None:
+    """A rollout's phase to start with (a continuation's), or None: a new start's own."""
+    if raw is None:
+        return None
+    size = job.extra["demos"].phase_dim
+    if not size:
+        raise RequestError(422, "'phase' is for a model with a phase; this one has none")
+    return parse_vector(raw, size, limits, name="phase")
 
 
 def _pushes(raw: Any, limits: Limits) -> list[tuple[float, np.ndarray]]:
@@ -325,6 +349,7 @@ def rollout_from(
     job: Job,
     start: np.ndarray,
     *,
+    phase: np.ndarray | None = None,
     pushes: list[tuple[float, np.ndarray]],
     duration: float,
     dt: float,
@@ -332,7 +357,9 @@ def rollout_from(
 ) -> dict:
     """A rollout of a job's policy: the guarded step for a stable policy, else plain Euler.
 
-    Each push displaces the state at its time; the rollout ends at ``duration`` (or after
+    A model with a phase starts with ``phase``, or, without one, with the phase a new start
+    gets (:func:`snds.phase.start_states`); each push displaces the position at its time and
+    the phase keeps its value. The rollout ends at ``duration`` (or after
     ``max_steps`` steps), or when the state is within the stability check's tolerance of the
     target with no push left.
     """
@@ -346,19 +373,24 @@ def rollout_from(
             422, f"duration / dt = {steps} steps, at most {max_steps}; take a longer dt"
         )
     guard = policy_guard(policy) if policy.stable else None
-    x = torch.as_tensor(start, dtype=torch.float64).reshape(1, 2)
+    state = _states(job, np.reshape(start, (1, 2))) if phase is None else [[*start, *phase]]
+    x = torch.as_tensor(np.asarray(state), dtype=torch.float64)
+    # A push moves the position; a phase keeps its value.
+    pad = [0.0] * (x.shape[1] - 2)
     value = None
-    t, times, states, shortened = 0.0, [0.0], [x[0].tolist()], 0
+    t, times, states, shortened = 0.0, [0.0], [x[0, :2].tolist()], 0
+    phases = [x[0, 2:].tolist()]
     pending = list(pushes)
     # Until the duration: the guard's shorter steps take more of them (at most max_steps).
     for _ in range(max_steps):
         if t >= duration:
             break
         while pending and pending[0][0] <= t:
-            x = x + torch.as_tensor(pending.pop(0)[1])
+            x = x + torch.as_tensor([*pending.pop(0)[1], *pad])
             value = None
             times.append(t)
-            states.append(x[0].tolist())
+            states.append(x[0, :2].tolist())
+            phases.append(x[0, 2:].tolist())
         if guard is not None:
             lyapunov, rate = guard
             x, h, value = guarded_step(policy, lyapunov, x, dt=dt, rate=rate, value=value)
@@ -368,15 +400,17 @@ def rollout_from(
             x, step = x + dt * policy(x), dt
         t += step
         times.append(t)
-        states.append(x[0].tolist())
+        states.append(x[0, :2].tolist())
+        phases.append(x[0, 2:].tolist())
         if not bool(torch.isfinite(x).all()):
             break
-        if not pending and float((x[0] - target).norm()) <= tolerance:
+        if not pending and float((x[0, :2] - target).norm()) <= tolerance:
             break
-    distance = float((x[0] - target).norm())
+    distance = float((x[0, :2] - target).norm())
     return {
         "t": times,
         "states": states,
+        "phases": phases,
         "arrived": distance <= tolerance,
         "final_distance": distance,
         "tolerance": tolerance,
@@ -550,6 +584,7 @@ def create_app(
         if "start" not in body:
             raise RequestError(400, "'start' must be [x, y]")
         start = parse_target(body["start"], limits, name="start")
+        phase = _phase(body.get("phase"), job, limits)
         pushes = _pushes(body.get("pushes"), limits)
         result = job.extra["result"]
         dt = _positive(body.get("dt", result["dt"]), "dt", 1e3)
@@ -558,6 +593,7 @@ def create_app(
             rollout_from,
             job,
             start,
+            phase=phase,
             pushes=pushes,
             duration=duration,
             dt=dt,

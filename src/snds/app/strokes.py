@@ -34,6 +34,7 @@ __all__ = [
     "demonstrations_from_csv",
     "parse_strokes",
     "parse_target",
+    "parse_vector",
     "strokes_from_csv",
     "write_csv",
 ]
@@ -144,6 +145,13 @@ def _point(value: Any, where: str, limits: Limits) -> list[float]:
     if not isinstance(value, list) or len(value) != 3:
         raise RequestError(400, f"{where}: expected [x, y, t], got {_json_type(value)}")
     return [_number(v, where, limits) for v in value]
+
+
+def parse_vector(value: Any, size: int, limits: Limits = LIMITS, *, name: str) -> np.ndarray:
+    """A list of ``size`` numbers of the request (a 422 naming ``name`` otherwise)."""
+    if not isinstance(value, list) or len(value) != size:
+        raise RequestError(422, f"{name}: expected a list of {size} numbers")
+    return np.array([_number(v, name, limits) for v in value])
 
 
 def parse_target(value: Any, limits: Limits = LIMITS, *, name: str = "target") -> np.ndarray:

@@ -534,16 +534,21 @@
     ro.pending = true;
     let answer;
     try {
-      answer = await api(`/api/jobs/${job.id}/rollout`, { start: ro.states[ro.states.length - 1], duration: CHUNK });
+      // A model with a phase goes on with the phase it has (a new start would get another).
+      const body = { start: ro.states[ro.states.length - 1], duration: CHUNK };
+      if (ro.phases.length && ro.phases[ro.phases.length - 1]) body.phase = ro.phases[ro.phases.length - 1];
+      answer = await api(`/api/jobs/${job.id}/rollout`, body);
     } catch (error) {
       if (token === rolloutToken) { ro.status = "stopped"; say(error.message, true); }
       return;
     }
     if (token !== rolloutToken) return;
     const offset = ro.t[ro.t.length - 1];
+    if (ro.phases.length === 1 && ro.phases[0] === null) ro.phases[0] = answer.phases[0];
     for (let k = 1; k < answer.t.length; k++) {
       ro.t.push(offset + answer.t[k]);
       ro.states.push(answer.states[k]);
+      ro.phases.push(answer.phases[k]);
     }
     ro.integrator = answer.integrator;
     ro.finalDistance = answer.final_distance;
@@ -554,12 +559,13 @@
     ro.pending = false;
   }
 
-  async function startRollout(start, trail = []) {
+  // A push keeps the phase the point had (phase: null lets the server give a new start its own).
+  async function startRollout(start, trail = [], phase = null) {
     const job = currentJob();
     if (!job || !job.result) return;
     const token = ++rolloutToken;
     const piece = { points: [start], push: false };
-    const ro = { status: "requesting", position: start, trail, start, t: [0], states: [start], piece, index: 0 };
+    const ro = { status: "requesting", position: start, trail, start, t: [0], states: [start], phases: [phase], piece, index: 0 };
     app.rollout = ro;
     draw();
     await fetchChunk(ro, token);
@@ -681,7 +687,8 @@
     if (app.dragging === "point") {
       app.dragging = null;
       const ro = app.rollout;
-      startRollout(ro.position, ro.trail);
+      const phase = ro.phases[Math.min(ro.index, ro.phases.length - 1)];
+      startRollout(ro.position, ro.trail, phase && phase.length ? phase : null);
       return;
     }
     if (!app.drawing) return;
