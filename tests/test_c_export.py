@@ -245,28 +245,35 @@ def test_unsupported_policies_are_refused_in_one_line(models, tmp_path):
 
 
 def test_a_phase_model_gives_a_new_start_its_phase_as_the_library(models, tmp_path):
-    # GIVEN the phase model's export with the demonstrations' start states
+    # GIVEN the phase model's export with the library's start rule
     import ctypes
 
-    from snds.phase import start_state
+    from snds.phase import start_rule, start_state
 
     policy = models["phase"]
     demos = Phase(codes=3).apply(spiral_demos())
-    starts = np.stack([d.states[0] for d in demos])
-    header = c_export.export_c(policy, tmp_path / "phase.h", starts=starts)
-    assert "#define SNDS_START_COUNT 3" in header.read_text()
+    rule = start_rule(demos)
+    header = c_export.export_c(policy, tmp_path / "phase.h", start_rule=rule)
+    assert f"#define SNDS_START_COUNT {len(rule.references)}" in header.read_text()
     library = c_check.compile_shared(header, tmp_path / "phase.so")
     function = ctypes.CDLL(str(library)).snds_start_state
     pointer = ctypes.POINTER(ctypes.c_double)
     function.argtypes = [pointer, pointer]
-    # WHEN it starts at positions near each start and far away
+    # WHEN it starts beside demonstrated samples (within the reach and beyond) and far away
     rng = np.random.default_rng(0)
-    for position in [*(s[:2] + rng.normal(size=2) for s in starts), np.array([50.0, -80.0])]:
+    samples = np.concatenate([d.states[::37, :2] for d in demos])
+    offsets = rng.normal(size=samples.shape) * 0.04 * demos.extent()
+    positions = [*(samples + offsets), np.array([50.0, -80.0])]
+    phased = 0
+    for position in positions:
         state = np.zeros(5)
         function(
             np.ascontiguousarray(position).ctypes.data_as(pointer), state.ctypes.data_as(pointer)
         )
         # THEN it is the library's start state
         np.testing.assert_array_equal(state, start_state(demos, position))
+        phased += bool(np.any(state[2:]))
+    # AND both branches were taken: a phase lent, and phase 0
+    assert 0 < phased < len(positions)
     with pytest.raises(c_export.CExportError, match="phase"):
-        c_export.export_c(models["positions"], tmp_path / "p.h", starts=starts)
+        c_export.export_c(models["positions"], tmp_path / "p.h", start_rule=rule)

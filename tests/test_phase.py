@@ -16,7 +16,14 @@ from snds.errors import ConfigError, DataError
 from snds.evaluate import evaluate
 from snds.method import make_policy
 from snds.models import load_model, save_model
-from snds.phase import Phase, phase_step, start_state, start_states
+from snds.phase import (
+    START_REFERENCES,
+    Phase,
+    phase_step,
+    start_rule,
+    start_state,
+    start_states,
+)
 from snds.rollout import rollout_numpy
 from snds.spaces import SE3, Euclidean, Phased
 from snds.stability import CheckConfig
@@ -107,8 +114,10 @@ def test_start_state_takes_the_nearest_samples_phase_beside_the_data_and_0_away(
     # GIVEN a start a hair beside a sample in the middle of demonstration 1
     position = phased[1].states[300, :2] + 0.001 * phased.extent()
     state = start_state(phased, position)
-    # THEN it takes the phase of the demonstrated sample nearest to it (by brute force)
-    samples = np.concatenate([demo.states for demo in phased])
+    # THEN it takes the phase of the reference sample nearest to it (by brute force): up to
+    # START_REFERENCES of each demonstration, evenly spaced
+    samples = start_rule(phased).references
+    assert len(samples) <= START_REFERENCES * len(phased)
     nearest = samples[np.argmin(np.linalg.norm(samples[:, :2] - position, axis=1))]
     np.testing.assert_array_equal(state, np.concatenate([position, nearest[2:]]))
     assert np.linalg.norm(state[2:]) > 0
@@ -249,8 +258,10 @@ def test_cli_train_evaluate_plot_export_with_a_phase(tmp_path, capsys):
 
     meta = {p.key: p.value for p in onnx.load(str(tmp_path / "m.onnx")).metadata_props}
     demos = DataSource(motion="Sine", demos=2, phase=Phase(codes=2)).load()
-    starts = np.array(json.loads(meta["snds.start_states"]))
-    np.testing.assert_array_equal(starts, np.stack([d.states[0] for d in demos]))
+    references = np.array(json.loads(meta["snds.start_references"]))
+    rule = start_rule(demos)
+    np.testing.assert_array_equal(references, rule.references)
+    assert float(meta["snds.start_reach"]) == rule.reach
     state = start_state(demos, demos[0].states[100, :2] + 0.5)
     policy, _ = load_model(out)
     expected = policy.to(torch.float64).predict(state[None])
@@ -300,10 +311,12 @@ def test_the_simulated_arm_keeps_the_phase_and_it_waits_while_held(trained, phas
         commander.start_pose(start[:2])
 
 
-def test_export_refuses_start_states_of_another_shape(trained, tmp_path):
+def test_export_refuses_start_references_of_another_shape(trained, tmp_path):
     pytest.importorskip("onnx", reason="the export needs the export extra")
     from snds.export import ExportError, export_onnx
+    from snds.phase import StartRule
 
-    with pytest.raises(ExportError, match=r"shape \(D, 5\); got \(2, 4\)"):
-        export_onnx(trained, tmp_path / "m.onnx", starts=np.zeros((2, 4)))
+    rule = StartRule(np.zeros((2, 4)), 1.0, phase_dim=3, position_dim=2)
+    with pytest.raises(ExportError, match=r"shape \(K, 5\); got \(2, 4\)"):
+        export_onnx(trained, tmp_path / "m.onnx", start_rule=rule)
     assert not (tmp_path / "m.onnx").exists()

@@ -40,6 +40,7 @@ import torch
 from snds.c_source import CExportError, Generator
 from snds.io import atomic_write
 from snds.nn.lyapunov import Lyapunov, WarpedLyapunov
+from snds.phase import StartRule
 from snds.policy import Policy, StablePolicy
 from snds.se3 import PosePolicy
 
@@ -85,7 +86,7 @@ def export_c(
     rate: float = DEFAULT_RATE,
     max_speed: float | None = None,
     prefix: str = "snds",
-    starts: np.ndarray | None = None,
+    start_rule: StartRule | None = None,
 ) -> Path:
     """Writes a policy as C99: ``path`` (the header, ``.h``) and the source beside it (``.c``).
 
@@ -97,8 +98,9 @@ def export_c(
             positions per second; None: 0, no limit), what a loop passes to the step.
         prefix: Prefix of every public name (functions ``prefix_policy``, macros
             ``PREFIX_*``).
-        starts: A model with a phase: the demonstrations' start states (D, space.dim), for
-            ``prefix_start_state`` (a new start's phase, as :func:`snds.phase.start_state`).
+        start_rule: A model with a phase: how a new start gets its phase
+            (:func:`snds.phase.start_rule`), for ``prefix_start_state``, which gives the
+            library's :func:`snds.phase.start_state`.
 
     Returns:
         The header's path.
@@ -116,19 +118,20 @@ def export_c(
     path = Path(path)
     if path.suffix != ".h":
         raise CExportError(f"{path}: the C export's file is the header, ending in .h")
-    if starts is not None:
-        starts = np.asarray(starts, dtype=np.float64)
+    if start_rule is not None:
+        references = np.asarray(start_rule.references, dtype=np.float64)
         if (
             not policy.space.phase_dim
-            or starts.ndim != 2
-            or starts.shape[1] != policy.space.dim
-            or not np.isfinite(starts).all()
+            or references.ndim != 2
+            or references.shape[1] != policy.space.dim
+            or not np.isfinite(references).all()
+            or not start_rule.reach >= 0
         ):
             raise CExportError(
-                f"start states are for a model with a phase: finite, of shape (D, "
-                f"{policy.space.dim}); got {starts.shape}"
+                f"a start rule is for a model with a phase: finite references of shape (K, "
+                f"{policy.space.dim}); got {references.shape}"
             )
-    generator = Generator(exact, prefix=prefix, starts=starts)
+    generator = Generator(exact, prefix=prefix, start_rule=start_rule)
     header, source = generator.header(rate=rate, max_speed=max_speed or 0.0), generator.source()
     source = source.replace('#include "HEADER"', f'#include "{path.name}"')
     atomic_write(path.with_suffix(".c"), lambda tmp: tmp.write_text(source))

@@ -26,6 +26,7 @@ from snds.c_space import SINC_THRESHOLD, advance, chart, so3, to_user
 from snds.errors import SNDSError
 from snds.nn.lyapunov import WarpedLyapunov
 from snds.nn.mlp import FourierFeatures
+from snds.phase import StartRule
 from snds.policy import StablePolicy
 from snds.se3 import PosePolicy
 
@@ -99,10 +100,11 @@ class Generator:
     """
 
     def __init__(
-        self, policy: StablePolicy, *, prefix: str, starts: np.ndarray | None = None
+        self, policy: StablePolicy, *, prefix: str, start_rule: StartRule | None = None
     ) -> None:
         self.policy = policy
-        self.starts = None if starts is None else np.asarray(starts, dtype=np.float64)
+        self.start_rule = start_rule
+        self.starts = None if start_rule is None else np.asarray(start_rule.references)
         self.prefix = prefix
         self.pose = isinstance(policy, PosePolicy)
         space = policy.space
@@ -332,22 +334,25 @@ REAL {prefix}_stepSUFFIX(const REAL *state, REAL dt, REAL max_speed, REAL *comma
 """
 
     def _start(self) -> str:
-        if self.starts is None:
+        if self.start_rule is None:
             return ""
         s, p = self.states, self.position_dim
-        return f"""void {self.prefix}_start_stateSUFFIX(const REAL *position, REAL *state) {{
+        b = s - self.policy.space.phase_dim
+        reach = self.start_rule.reach
+        return f"""void {self.prefix}_start_stateSUFFIX(const REAL *base, REAL *state) {{
     int d, i, nearest = 0;
     REAL best = LIT(0.0);
     for (d = 0; d < {len(self.starts)}; ++d) {{
         REAL distance = LIT(0.0);
         for (i = 0; i < {p}; ++i) {{
-            const REAL offset = START_STATES_SFX[d * {s} + i] - position[i];
+            const REAL offset = START_STATES_SFX[d * {s} + i] - base[i];
             distance += offset * offset;
         }}
         if (d == 0 || distance < best) {{ best = distance; nearest = d; }}
     }}
-    for (i = 0; i < {p}; ++i) state[i] = position[i];
-    for (i = {p}; i < {s}; ++i) state[i] = START_STATES_SFX[nearest * {s} + i];
+    for (i = 0; i < {b}; ++i) state[i] = base[i];
+    for (i = {b}; i < {s}; ++i)
+        state[i] = best <= LIT({reach * reach!r}) ? START_STATES_SFX[nearest * {s} + i] : LIT(0.0);
 }}
 """
 
@@ -423,9 +428,10 @@ REAL {prefix}_stepSUFFIX(const REAL *state, REAL dt, REAL max_speed, REAL *comma
             for variant in VARIANTS:
                 real, sfx = variant.real, variant.suffix
                 lines += [
-                    "/* A start state at a position: the position, then the phase of the",
-                    " * demonstration whose start is nearest (snds.phase.start_state). */",
-                    f"void {prefix}_start_state{sfx}(const {real} *position, {real} *state);",
+                    "/* A start state at a base state (a position, or a pose): the base, then",
+                    " * the phase of the nearest demonstrated sample within the reach, else 0",
+                    " * (snds.phase.start_state). */",
+                    f"void {prefix}_start_state{sfx}(const {real} *base, {real} *state);",
                 ]
         lines += ["#ifdef __cplusplus\n}\n#endif", f"#endif /* {macro}_POLICY_H */", ""]
         return "\n".join(lines)

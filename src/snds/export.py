@@ -43,6 +43,7 @@ from snds.errors import SNDSError
 from snds.io import atomic_write
 from snds.nn.lyapunov import Lyapunov, WarpedLyapunov
 from snds.nn.mlp import FourierFeatures
+from snds.phase import StartRule
 from snds.policy import Policy, StablePolicy, project
 
 #: Largest accepted difference from the library evaluated in the export's precision,
@@ -618,7 +619,7 @@ def export_onnx(
     path: str | Path,
     *,
     dtype: torch.dtype = torch.float32,
-    starts: np.ndarray | None = None,
+    start_rule: StartRule | None = None,
 ) -> Path:
     """Exports a policy to ONNX (opset 18), with a dynamic batch dimension.
 
@@ -626,9 +627,10 @@ def export_onnx(
         policy: The policy; it is copied, not changed.
         path: The file to write.
         dtype: Precision of the graph, its input and its output.
-        starts: The demonstrations' start states (D, n), written as ``snds.start_states`` (a
-            JSON list of lists): what a controller of a model with a phase takes a new
-            start's phase from (:func:`snds.phase.start_state`).
+        start_rule: How a model with a phase gives a new start its phase
+            (:func:`snds.phase.start_rule`), written as ``snds.start_references`` (a JSON list
+            of reference states) and ``snds.start_reach`` (user units): a new start takes the
+            phase of the reference nearest to its position if within the reach, else 0.
 
     Returns:
         The path written. The graph maps ``x`` (B, n) to velocities (B, n), user units (a
@@ -640,7 +642,7 @@ def export_onnx(
         policy's also ``snds.angle_extent`` (radians) and ``snds.top_angular_speed`` (rad/s).
     """
     _check_dtype(dtype)
-    start_states = None if starts is None else _start_states(policy, starts)
+    starts = {} if start_rule is None else _start_metadata(policy, start_rule)
     try:
         import onnx
     except ImportError as error:
@@ -675,7 +677,7 @@ def export_onnx(
         "snds.method": policy.method,
         # A modulated policy (snds.obstacles) records its fixed obstacles.
         **getattr(policy, "export_metadata", dict)(),
-        **({} if start_states is None else {"snds.start_states": start_states}),
+        **starts,
     }
     for key, value in metadata.items():
         entry = model.metadata_props.add()
@@ -685,14 +687,18 @@ def export_onnx(
     return path
 
 
-def _start_states(policy: Policy, starts: np.ndarray) -> str:
-    """``starts`` (D, n) as the JSON of ``snds.start_states``, or an error naming the shape."""
-    starts = np.asarray(starts, dtype=np.float64)
-    if starts.ndim != 2 or starts.shape[1] != policy.space.dim or not np.isfinite(starts).all():
+def _start_metadata(policy: Policy, rule: StartRule) -> dict[str, str]:
+    """A start rule as ONNX metadata, or an error naming the shape."""
+    references = np.asarray(rule.references, dtype=np.float64)
+    dim = policy.space.dim
+    if references.ndim != 2 or references.shape[1] != dim or not np.isfinite(references).all():
         raise ExportError(
-            f"start states must be finite, of shape (D, {policy.space.dim}); got {starts.shape}"
+            f"start references must be finite, of shape (K, {dim}); got {references.shape}"
         )
-    return json.dumps(starts.tolist())
+    return {
+        "snds.start_references": json.dumps(references.tolist()),
+        "snds.start_reach": repr(float(rule.reach)),
+    }
 
 
 def _scalar_tensor_onnx(

@@ -34,7 +34,16 @@ from scipy.spatial import cKDTree
 from snds.data.demonstrations import DemonstrationSet
 from snds.errors import ConfigError, DataError
 
-__all__ = ["START_REACH", "Phase", "phase_step", "start_state", "start_states"]
+__all__ = [
+    "START_REACH",
+    "START_REFERENCES",
+    "Phase",
+    "StartRule",
+    "phase_step",
+    "start_rule",
+    "start_state",
+    "start_states",
+]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -99,15 +108,61 @@ class Phase:
 #: :func:`start_state`.
 START_REACH = 0.05
 
+#: At most this many samples of each demonstration (evenly spaced) lend a new start their
+#: phase: the same references for the library and for an exported controller, which stores
+#: them.
+START_REFERENCES = 200
+
+
+@dataclass(frozen=True)
+class StartRule:
+    """How a new start gets its phase: the phase of the nearest reference state (by position)
+    if it lies within ``reach``, else 0 (:func:`start_rule`).
+
+    Attributes:
+        references: Demonstrated states, shape (K, b + m): a base state (position, or pose)
+            then its phase.
+        reach: The largest distance (user units of the positions) at which a reference lends
+            its phase.
+        phase_dim: m.
+        position_dim: How many leading numbers of a state are its position.
+    """
+
+    references: np.ndarray
+    reach: float
+    phase_dim: int
+    position_dim: int
+
+    def start_states(self, bases: np.ndarray) -> np.ndarray:
+        """The start states of base states (B, b), shape (B, b + m)."""
+        b = self.references.shape[1] - self.phase_dim
+        bases = np.asarray(bases, dtype=np.float64).reshape(-1, b)
+        p = self.position_dim
+        distance, nearest = cKDTree(self.references[:, :p]).query(bases[:, :p])
+        phases = np.where((distance <= self.reach)[:, None], self.references[nearest, b:], 0.0)
+        return np.concatenate([bases, phases], axis=1)
+
+
+def start_rule(demos: DemonstrationSet, *, reach: float = START_REACH) -> StartRule:
+    """The rule of :func:`start_state` for ``demos``: up to :data:`START_REFERENCES` samples
+    of each demonstration, and ``reach`` extents."""
+    references = []
+    for demo in demos:
+        stride = max(1, -(-len(demo.times) // START_REFERENCES))
+        references.append(demo.states[::stride])
+    return StartRule(
+        np.concatenate(references), reach * demos.extent(), demos.phase_dim, demos.position_dim
+    )
+
 
 def start_state(
     demos: DemonstrationSet, position: np.ndarray, *, reach: float = START_REACH
 ) -> np.ndarray:
     """A phased start at a base state (a position, or a pose): the phase of the nearest
-    demonstrated sample if one lies within ``reach`` extents of its position, so that a start
-    on or beside a demonstration retraces it from there; else phase 0, so that a start away
-    from the data heads for the target instead of for a demonstration
-    (docs/design.md, "A new start's phase").
+    demonstrated sample (of :data:`START_REFERENCES` per demonstration) if one lies within
+    ``reach`` extents of its position, so that a start on or beside a demonstration retraces
+    it from there; else phase 0, so that a start away from the data heads for the target
+    instead of for a demonstration (docs/design.md, "A new start's phase").
 
     Arguments:
         demos: The phased demonstrations of the task.
@@ -130,20 +185,7 @@ def start_states(
     demos: DemonstrationSet, positions: np.ndarray, *, reach: float = START_REACH
 ) -> np.ndarray:
     """:func:`start_state` of many base states at once, shape (B, b) -> (B, b + m)."""
-    m, p = demos.phase_dim, demos.position_dim
-    b = len(demos.target) - m
-    positions = np.asarray(positions, dtype=np.float64).reshape(-1, b)
-    samples = np.concatenate([demo.states for demo in demos])
-    nearest, distance = _nearest(samples[:, :p], positions[:, :p])
-    near = distance <= reach * demos.extent()
-    phases = np.where(near[:, None], samples[nearest, b:], 0.0)
-    return np.concatenate([positions, phases], axis=1)
-
-
-def _nearest(references: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The index of the reference nearest to each point and its distance, shapes (B,)."""
-    distance, index = cKDTree(references).query(points)
-    return index, distance
+    return start_rule(demos, reach=reach).start_states(positions)
 
 
 def phase_step(
