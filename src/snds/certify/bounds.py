@@ -112,7 +112,9 @@ def cell_bounds(
     v_hi = at_center.value.hi[:, 0] + linear + 0.5 * np.maximum(h_hi, 0.0) * width2
     v_hi = v_hi * (1 + 1e-15) + ia.TINY
     grad = _mean_value(
-        at_center.grad[..., 0], ia.Iv(over.hess.m[..., 0], over.hess.r[..., 0]), half,
+        at_center.grad[..., 0],
+        ia.Iv(over.hess.m[..., 0], over.hess.r[..., 0]),
+        half,
         over.grad[..., 0],
     )
     grad_lo, grad_hi = _norm_lo(grad.mig), _norm_hi(grad.mag)
@@ -136,8 +138,7 @@ def cell_bounds(
     with np.errstate(invalid="ignore", over="ignore"):
         gain = step * a_lo * (1 - 4 * ia.UNIT)
         loss = ia.up(
-            step * eta * grad_hi * speed
-            + 0.5 * curvature * (1 + eta) ** 2 * step**2 * speed**2,
+            step * eta * grad_hi * speed + 0.5 * curvature * (1 + eta) ** 2 * step**2 * speed**2,
             12,
         )
         decrease = np.where(np.isfinite(loss), gain - loss, -np.inf)

@@ -107,7 +107,9 @@ def concat(jets: list[Jet]) -> Jet:
     """Jets side by side (their k's add up)."""
 
     def cat(parts: list[Iv]) -> Iv:
-        return Iv(np.concatenate([p.m for p in parts], -1), np.concatenate([p.r for p in parts], -1))
+        return Iv(
+            np.concatenate([p.m for p in parts], -1), np.concatenate([p.r for p in parts], -1)
+        )
 
     hess = None if any(j.hess is None for j in jets) else cat([j.hess for j in jets])
     return Jet(cat([j.value for j in jets]), cat([j.grad for j in jets]), hess)

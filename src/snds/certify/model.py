@@ -139,9 +139,7 @@ class PolicyModel:
         net0 = _net(layers, fourier, jets.variable(zero, zero, order=1)).value
         phi0 = _flow(warp, jets.variable(zero, zero, order=1)).value
         g_at0 = _icnn(skips, prev, out, partial["icnn_slope"], jets.variable(zero, zero, order=1))
-        return cls(
-            **partial, net0=net0, phi0=phi0, g0=g_at0.value, grad_g0=g_at0.grad[0]
-        )
+        return cls(**partial, net0=net0, phi0=phi0, g0=g_at0.value, grad_g0=g_at0.grad[0])
 
 
 def _check(policy: Policy) -> None:

@@ -14,14 +14,14 @@ from collections.abc import Callable, Sequence
 
 import torch
 
-from snds.cli import app, benchmark, evaluate, export, plot, simulate, train
+from snds.cli import app, benchmark, evaluate, export, plot, simulate, train, verify
 from snds.cli.train import _policy_config
 from snds.errors import SNDSError
 
 __all__ = ["_build_parser", "_policy_config", "main"]
 
 #: The subcommands, in the order ``snds --help`` lists them.
-COMMANDS = (train, evaluate, plot, benchmark, simulate, export, app)
+COMMANDS = (train, evaluate, plot, benchmark, simulate, export, verify, app)
 
 
 def _build_parser() -> argparse.ArgumentParser:
