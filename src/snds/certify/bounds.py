@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from snds.certify import interval as ia
-from snds.certify.model import PolicyModel, f_jet, rate_bounds, v_jet
+from snds.certify.model import PolicyModel, f_forms, rate_bounds, v_forms, v_jet
 
 __all__ = ["CellBounds", "cell_bounds", "gershgorin"]
 
@@ -87,6 +87,25 @@ def _mean_value(center: ia.Iv, jacobian: ia.Iv, half: np.ndarray, direct: ia.Iv)
     return ia.from_bounds(lo, np.maximum(hi, lo))
 
 
+def _meet(a: ia.Iv, b: ia.Iv) -> ia.Iv:
+    """An interval holding the intersection of two that both hold the true values."""
+    lo, hi = np.maximum(a.lo, b.lo), np.minimum(a.hi, b.hi)
+    return ia.from_bounds(lo, np.maximum(lo, hi))
+
+
+def _projection(f: ia.Iv, grad: ia.Iv, a_lo: np.ndarray, a_hi: np.ndarray) -> ia.Iv:
+    """pi = f - grad V relu(grad V . f + a) / |grad V|^2 in intervals, (C, n)."""
+    excess = (grad * f).sum(-1) + ia.from_bounds(a_lo, a_hi)
+    relu = ia.from_bounds(np.maximum(excess.lo, 0.0), np.maximum(excess.hi, 0.0))
+    norm2 = grad.square().sum(-1)
+    low = np.maximum(norm2.lo, 0.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inverse = ia.from_bounds(
+            (1.0 / norm2.hi) * (1 - 4 * ia.UNIT), np.where(low > 0, (1.0 / low) * (1 + 4 * ia.UNIT), np.inf)
+        )
+    return f - grad * (relu * inverse)[:, None]
+
+
 def cell_bounds(
     model: PolicyModel, lo: np.ndarray, hi: np.ndarray, *, step: float, eta: float
 ) -> CellBounds:
@@ -117,30 +136,43 @@ def cell_bounds(
         half,
         over.grad[..., 0],
     )
+    # The same quantities as Taylor models (snds.certify.affine): each enclosure holds the
+    # true values, so their intersection does too.
+    forms = v_forms(model, center, half, order=1)
+    v_lo = np.maximum(v_lo, forms.value.lo[:, 0])
+    v_hi = np.minimum(v_hi, forms.value.hi[:, 0])
+    grad = _meet(grad, forms.grad.interval()[..., 0])
     grad_lo, grad_hi = _norm_lo(grad.mig), _norm_hi(grad.mag)
     rate_lo, rate_hi = rate_bounds(model, lo, hi)
     a_lo = np.maximum(v_lo * rate_lo * (1 - 4 * ia.UNIT), 0.0)
     a_hi = ia.up(v_hi * np.maximum(rate_hi, 0.0), 2)
-    f_center = f_jet(model, center, center).value
-    f_over = f_jet(model, lo, hi)
-    f = _mean_value(f_center, f_over.grad, half, f_over.value)
-    with np.errstate(divide="ignore", invalid="ignore"):
+    f = f_forms(model, center, half).interval()
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         ratio = np.where(grad_lo > 0, ia.up(a_hi / grad_lo, 2), np.inf)
-    speed = ia.up(np.sqrt(ia.up((f.mag**2).sum(-1) + ratio**2, n + 3)), 2)
-    reach = ia.up((1 + eta) * step * speed, 3)
-    finite = np.isfinite(reach)
+        speed = ia.up(np.sqrt(ia.up((f.mag**2).sum(-1) + ratio**2, n + 3)), 2)
+        reach = ia.up((1 + eta) * step * speed, 3)
+    finite = np.isfinite(reach) & (grad_lo > 0)
     curvature = np.full(len(lo), np.inf)
+    quadratic = np.full(len(lo), np.inf)
     if finite.any():
-        grown = v_jet(
-            model, lo[finite] - reach[finite, None], hi[finite] + reach[finite, None], order=2
-        )
-        curvature[finite] = np.maximum(gershgorin(grown.hess)[1], 0.0)
+        c, w, r = center[finite], half[finite], reach[finite, None]
+        grown = v_jet(model, lo[finite] - r, hi[finite] + r, order=2).hess
+        tight = v_forms(model, c, w + r, order=2).hess.interval()
+        hess = _meet(ia.Iv(grown.m[..., 0], grown.r[..., 0]), tight[..., 0])
+        top = gershgorin(ia.Iv(hess.m[..., None], hess.r[..., None]))[1]
+        curvature[finite] = np.maximum(top, 0.0)
+        # Along the step itself: pi^T H pi over the cell's pi and the segments' H, from the
+        # projection's own formula in intervals (tighter than the top eigenvalue |pi|^2 where
+        # pi is not along the top eigenvector).
+        velocity = _projection(f[finite], grad[finite], a_lo[finite], a_hi[finite])
+        directional = (hess * velocity[:, :, None] * velocity[:, None, :]).sum(-1).sum(-1).hi
+        rows = ia.up(hess.mag.sum(-1).max(-1), n + 2)
+        p2 = ia.up(speed[finite] ** 2, 1)
+        best = np.minimum(directional, curvature[finite] * p2)
+        quadratic[finite] = ia.up(np.maximum(best, 0.0) + (2 * eta + eta**2) * rows * p2, 6)
     with np.errstate(invalid="ignore", over="ignore"):
         gain = step * a_lo * (1 - 4 * ia.UNIT)
-        loss = ia.up(
-            step * eta * grad_hi * speed + 0.5 * curvature * (1 + eta) ** 2 * step**2 * speed**2,
-            12,
-        )
+        loss = ia.up(step * eta * grad_hi * speed + 0.5 * step**2 * quadratic, 8)
         decrease = np.where(np.isfinite(loss), gain - loss, -np.inf)
     if not model.projected:
         # pi = f: grad V . pi <= -a does not hold, so nothing here proves a decrease.

@@ -132,6 +132,14 @@ class Iv:
         low = np.maximum(low, 0.0)
         return from_bounds(low * low * (1 - 4 * UNIT), high * high * (1 + 4 * UNIT) + TINY)
 
+    def matmul(self, weight: np.ndarray | Iv) -> Iv:
+        """self @ W over the last axis, W (k, j) exact floats or intervals."""
+        return matmul_iv(self, weight) if isinstance(weight, Iv) else matmul(self, weight)
+
+    def swap12(self) -> Iv:
+        """Axes 1 and 2 exchanged."""
+        return Iv(np.swapaxes(self.m, 1, 2), np.swapaxes(self.r, 1, 2))
+
     def hull(self, other: Iv) -> Iv:
         """The smallest interval holding both."""
         return from_bounds(np.minimum(self.lo, other.lo), np.maximum(self.hi, other.hi))

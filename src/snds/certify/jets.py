@@ -16,10 +16,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from snds.certify import affine
 from snds.certify import interval as ia
 from snds.certify.interval import Iv
 
-__all__ = ["Jet", "concat", "elementwise", "linear", "product", "variable"]
+__all__ = ["Jet", "affine_variable", "concat", "elementwise", "linear", "product", "variable"]
 
 
 @dataclass(frozen=True)
@@ -48,6 +49,20 @@ class Jet:
         return Jet(self.value.sum(-1)[..., None], self.grad.sum(-1)[..., None], hess)
 
 
+def affine_variable(center: np.ndarray, half: np.ndarray, *, order: int = 2) -> Jet:
+    """The identity over the cells |x - c| <= w (C, n) as Taylor models
+    (:mod:`snds.certify.affine`): value x, gradient I, Hessian 0, all exact."""
+    c, n = center.shape
+    zeros = np.zeros
+
+    def constant(array: np.ndarray) -> affine.Aff:
+        return affine.Aff(array, zeros((*array.shape, n)), zeros(array.shape), half)
+
+    eye = np.broadcast_to(np.eye(n), (c, n, n)).copy()
+    hess = constant(zeros((c, n, n, n))) if order == 2 else None
+    return Jet(affine.variable(center, half), constant(eye), hess)
+
+
 def variable(lo: np.ndarray, hi: np.ndarray, *, order: int = 2) -> Jet:
     """The identity :math:`x \\mapsto x` over boxes [lo, hi] (C, n): its value the box, its
     gradient the identity matrix."""
@@ -59,12 +74,11 @@ def variable(lo: np.ndarray, hi: np.ndarray, *, order: int = 2) -> Jet:
 
 def linear(x: Jet, weight: np.ndarray | Iv, bias: np.ndarray | Iv | None = None) -> Jet:
     """The jet of x @ W + b, W (k, j) exact floats or intervals."""
-    mm = ia.matmul_iv if isinstance(weight, Iv) else ia.matmul
-    value = mm(x.value, weight)
+    value = x.value.matmul(weight)
     if bias is not None:
         value = value + (bias if isinstance(bias, Iv) else ia.point(bias))
-    hess = None if x.hess is None else mm(x.hess, weight)
-    return Jet(value, mm(x.grad, weight), hess)
+    hess = None if x.hess is None else x.hess.matmul(weight)
+    return Jet(value, x.grad.matmul(weight), hess)
 
 
 def elementwise(x: Jet, derivatives: Callable[[Iv], tuple[Iv, Iv, Iv | None]]) -> Jet:
@@ -76,12 +90,6 @@ def elementwise(x: Jet, derivatives: Callable[[Iv], tuple[Iv, Iv, Iv | None]]) -
     if x.hess is not None:
         g = x.grad
         outer = g[:, :, None, :] * g[:, None, :, :]
-        # The diagonal of g g^T is a square, which is never negative.
-        n = g.m.shape[1]
-        diag = np.arange(n)
-        squares = g.square()
-        outer.m[:, diag, diag, :] = squares.m
-        outer.r[:, diag, diag, :] = squares.r
         hess = x.hess * s1[:, None, None, :] + outer * s2[:, None, None, :]
     return Jet(s0, grad, hess)
 
@@ -93,7 +101,7 @@ def product(a: Jet, b: Jet) -> Jet:
     hess = None
     if a.hess is not None and b.hess is not None:
         cross = a.grad[:, :, None, :] * b.grad[:, None, :, :]
-        cross_t = Iv(np.swapaxes(cross.m, 1, 2), np.swapaxes(cross.r, 1, 2))
+        cross_t = cross.swap12()
         hess = (
             a.hess * b.value[:, None, None, :]
             + b.hess * a.value[:, None, None, :]
@@ -106,7 +114,9 @@ def product(a: Jet, b: Jet) -> Jet:
 def concat(jets: list[Jet]) -> Jet:
     """Jets side by side (their k's add up)."""
 
-    def cat(parts: list[Iv]) -> Iv:
+    def cat(parts: list):
+        if not isinstance(parts[0], Iv):
+            return affine.concat(parts)
         return Iv(
             np.concatenate([p.m for p in parts], -1), np.concatenate([p.r for p in parts], -1)
         )

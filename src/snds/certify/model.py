@@ -16,15 +16,26 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from snds.certify import affine
 from snds.certify import interval as ia
 from snds.certify import jets
 from snds.certify.interval import Iv
 from snds.certify.jets import Jet
+
+ELEMENTWISE_FNS = affine.ELEMENTWISE
 from snds.errors import SNDSError
 from snds.nn import MLP, FourierFeatures, WarpedLyapunov
 from snds.policy import Policy, StablePolicy, float64_copy
 
-__all__ = ["NotCertifiable", "PolicyModel", "f_jet", "rate_bounds", "v_jet"]
+__all__ = [
+    "NotCertifiable",
+    "PolicyModel",
+    "f_forms",
+    "f_jet",
+    "rate_bounds",
+    "v_forms",
+    "v_jet",
+]
 
 #: The ICNN activations this module bounds, with their linear slope c (s = c u + (1-c) sp(u)).
 _ICNN_SLOPES = {"smooth_leaky": 0.1, "softplus": 0.0}
@@ -136,9 +147,10 @@ class PolicyModel:
             projected=bool(config.stable),
         )
         zero = np.zeros((1, p.dim))
-        net0 = _net(layers, fourier, jets.variable(zero, zero, order=1)).value
-        phi0 = _flow(warp, jets.variable(zero, zero, order=1)).value
-        g_at0 = _icnn(skips, prev, out, partial["icnn_slope"], jets.variable(zero, zero, order=1))
+        point = jets.variable(zero, zero, order=1)
+        net0 = _net(layers, fourier, point, _interval_fns).value
+        phi0 = _flow(warp, point, _interval_fns).value
+        g_at0 = _icnn(skips, prev, out, partial["icnn_slope"], point, _interval_fns)
         return cls(**partial, net0=net0, phi0=phi0, g0=g_at0.value, grad_g0=g_at0.grad[0])
 
 
@@ -173,43 +185,51 @@ def _check(policy: Policy) -> None:
         raise NotCertifiable(f"ICNN activation {lyapunov.icnn.activation!r} is not certified")
 
 
-def _silu_derivatives(u: Iv) -> tuple[Iv, Iv, None]:
-    return ia.silu(u), ia.silu_slope(u), None
+def _interval_fns(name: str, slope: float = 0.0):  # noqa: ANN202
+    """(s, s', s'') enclosures over intervals for an elementwise function."""
+    if name == "sin":
+        return lambda u: (ia.sin(u), ia.cos(u), -ia.sin(u))
+    if name == "cos":
+        return lambda u: (ia.cos(u), -ia.sin(u), -ia.cos(u))
+    if name == "silu":
+        return lambda u: (ia.silu(u), ia.silu_slope(u), None)
+    return lambda u: ia.smooth_leaky(u, slope)
 
 
-def _sin_derivatives(u: Iv) -> tuple[Iv, Iv, Iv]:
-    s = ia.sin(u)
-    return s, ia.cos(u), -s
+def _affine_fns(name: str, slope: float = 0.0):  # noqa: ANN202
+    """(s, s', s'') as Taylor models (:mod:`snds.certify.affine`)."""
+    if name not in ("sin", "cos", "silu"):
+        name = "smooth_leaky" if slope else "softplus"
+    orders = 2 if name == "silu" else 3
+
+    def fns(u: affine.Aff) -> tuple:
+        forms = affine.derivative_forms(name, u, orders)
+        return tuple(forms) + (None,) * (3 - orders)
+
+    return fns
 
 
-def _cos_derivatives(u: Iv) -> tuple[Iv, Iv, Iv]:
-    c = ia.cos(u)
-    return c, -ia.sin(u), -c
-
-
-def _net(layers: tuple, fourier: np.ndarray, x: Jet) -> Jet:
+def _net(layers: tuple, fourier: np.ndarray, x: Jet, fns) -> Jet:  # noqa: ANN001
     angles = jets.linear(x, fourier)
     h = jets.concat(
-        [x, jets.elementwise(angles, _sin_derivatives), jets.elementwise(angles, _cos_derivatives)]
+        [x, jets.elementwise(angles, fns("sin")), jets.elementwise(angles, fns("cos"))]
     )
     for k, (weight, bias) in enumerate(layers):
         h = jets.linear(h, weight, bias)
         if k + 1 < len(layers):
-            h = jets.elementwise(h, _silu_derivatives)
+            h = jets.elementwise(h, fns("silu"))
     return h
 
 
-def _flow(warp: tuple, x: Jet) -> Jet:
+def _flow(warp: tuple, x: Jet, fns) -> Jet:  # noqa: ANN001
     for frequencies, phases, weight, bias in warp:
         angles = jets.linear(x, frequencies, phases)
-        x = x + jets.linear(jets.elementwise(angles, _cos_derivatives), weight, bias)
+        x = x + jets.linear(jets.elementwise(angles, fns("cos")), weight, bias)
     return x
 
 
-def _icnn(skips: tuple, prev: tuple, out: tuple, slope: float, z: Jet) -> Jet:
-    def act(u: Iv) -> tuple[Iv, Iv, Iv]:
-        return ia.smooth_leaky(u, slope)
-
+def _icnn(skips: tuple, prev: tuple, out: tuple, slope: float, z: Jet, fns) -> Jet:  # noqa: ANN001
+    act = fns("leaky", slope)
     h = None
     for k, (skip, bias) in enumerate(skips):
         u = jets.linear(z, skip, bias)
@@ -220,19 +240,43 @@ def _icnn(skips: tuple, prev: tuple, out: tuple, slope: float, z: Jet) -> Jet:
 
 
 def f_jet(model: PolicyModel, lo: np.ndarray, hi: np.ndarray) -> Jet:
-    """First-order jet of the nominal field f(x) = net(x) - net(0) over boxes (C, n)."""
-    net = _net(model.layers, model.fourier, jets.variable(lo, hi, order=1))
+    """First-order interval jet of the nominal field f(x) = net(x) - net(0) over boxes."""
+    net = _net(model.layers, model.fourier, jets.variable(lo, hi, order=1), _interval_fns)
     return net.shift(-model.net0)
 
 
-def v_jet(model: PolicyModel, lo: np.ndarray, hi: np.ndarray, *, order: int = 2) -> Jet:
-    r"""Jet of :math:`V(x) = V_c(\phi(x) - \phi(0))` over boxes (C, n), shape k = 1, with
-    :math:`V_c(z) = g(z) - g(0) - \nabla g(0)^\top z + d |z|^2`."""
-    z = _flow(model.warp, jets.variable(lo, hi, order=order)).shift(-model.phi0)
-    g = _icnn(model.icnn_skips, model.icnn_prev, model.icnn_out, model.icnn_slope, z)
+def f_forms(model: PolicyModel, center: np.ndarray, half: np.ndarray) -> affine.Aff:
+    """f over the cells |x - c| <= w as Taylor models, values (C, n)."""
+    x = affine.variable(center, half)
+    angles = x.matmul(model.fourier)
+    sin, cos = ELEMENTWISE_FNS["sin"], ELEMENTWISE_FNS["cos"]
+    h = affine.concat([x, affine.apply(angles, sin[0][:2], sin[1][2]),
+                       affine.apply(angles, cos[0][:2], cos[1][2])])
+    silu = ELEMENTWISE_FNS["silu"]
+    for k, (weight, bias) in enumerate(model.layers):
+        h = h.matmul(weight) + ia.point(bias)
+        if k + 1 < len(model.layers):
+            h = affine.apply(h, silu[0][:2], silu[1][2])
+    return h - model.net0
+
+
+def _lyapunov(model: PolicyModel, x: Jet, fns) -> Jet:  # noqa: ANN001
+    z = _flow(model.warp, x, fns).shift(-model.phi0)
+    g = _icnn(model.icnn_skips, model.icnn_prev, model.icnn_out, model.icnn_slope, z, fns)
     tangent = jets.linear(z, model.grad_g0)
     quadratic = jets.linear(jets.product(z, z), np.full((model.dim, 1), model.quadratic))
     return (g - tangent).shift(-model.g0) + quadratic
+
+
+def v_jet(model: PolicyModel, lo: np.ndarray, hi: np.ndarray, *, order: int = 2) -> Jet:
+    r"""Interval jet of :math:`V(x) = V_c(\phi(x) - \phi(0))` over boxes (C, n), k = 1, with
+    :math:`V_c(z) = g(z) - g(0) - \nabla g(0)^\top z + d |z|^2`."""
+    return _lyapunov(model, jets.variable(lo, hi, order=order), _interval_fns)
+
+
+def v_forms(model: PolicyModel, center: np.ndarray, half: np.ndarray, *, order: int = 2) -> Jet:
+    """V's jet over the cells |x - c| <= w with Taylor models for its entries."""
+    return _lyapunov(model, jets.affine_variable(center, half, order=order), _affine_fns)
 
 
 def rate_bounds(model: PolicyModel, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, ...]:
