@@ -94,8 +94,12 @@ class Aff:
     def __add__(self, other: Aff | Iv) -> Aff:
         if isinstance(other, Iv):
             c0 = self.c0 + other.m
-            return self._with(c0, np.broadcast_to(self.lin, (*c0.shape, self.lin.shape[-1])),
-                              self.rem + other.r, 1)
+            return self._with(
+                c0,
+                np.broadcast_to(self.lin, (*c0.shape, self.lin.shape[-1])),
+                self.rem + other.r,
+                1,
+            )
         return self._with(self.c0 + other.c0, self.lin + other.lin, self.rem + other.rem, 1)
 
     def __sub__(self, other: Aff | Iv) -> Aff:
@@ -134,8 +138,10 @@ class Aff:
     def swap12(self) -> Aff:
         """Axes 1 and 2 of the value exchanged."""
         return Aff(
-            np.swapaxes(self.c0, 1, 2), np.swapaxes(self.lin, 1, 2),
-            np.swapaxes(self.rem, 1, 2), self.w,
+            np.swapaxes(self.c0, 1, 2),
+            np.swapaxes(self.lin, 1, 2),
+            np.swapaxes(self.rem, 1, 2),
+            self.w,
         )
 
     def matmul(self, weight: np.ndarray | Iv) -> Aff:

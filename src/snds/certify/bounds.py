@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from snds.certify import interval as ia
-from snds.certify.model import PolicyModel, f_forms, rate_bounds, v_forms, v_jet
+from snds.certify.model import PolicyModel, f_quadratic, rate_bounds, v_forms
 
 __all__ = ["CellBounds", "cell_bounds", "gershgorin"]
 
@@ -42,15 +42,19 @@ class CellBounds:
         a_lo: Lower bound of the decay a(x).
         speed: P, upper bound of |pi(x)|.
         grad_hi: G, upper bound of |grad V(x)|.
-        curvature: M, upper bound of the Hessian's largest eigenvalue over the segments.
+        quadratic: Q, upper bound of Delta^T H Delta / h^2 over the steps Delta and the
+            Hessians H on their segments.
         decrease: Lower bound of the guaranteed decrease (proven where > 0).
+        largest_step: A step (model time) up to which the same bounds prove every shorter
+            step too: min(h, 2 (a_lo - eta G P) / Q) (0 where they prove none).
     """
 
     a_lo: np.ndarray
     speed: np.ndarray
     grad_hi: np.ndarray
-    curvature: np.ndarray
+    quadratic: np.ndarray
     decrease: np.ndarray
+    largest_step: np.ndarray
 
     @property
     def proven(self) -> np.ndarray:
@@ -101,7 +105,8 @@ def _projection(f: ia.Iv, grad: ia.Iv, a_lo: np.ndarray, a_hi: np.ndarray) -> ia
     low = np.maximum(norm2.lo, 0.0)
     with np.errstate(divide="ignore", invalid="ignore"):
         inverse = ia.from_bounds(
-            (1.0 / norm2.hi) * (1 - 4 * ia.UNIT), np.where(low > 0, (1.0 / low) * (1 + 4 * ia.UNIT), np.inf)
+            (1.0 / norm2.hi) * (1 - 4 * ia.UNIT),
+            np.where(low > 0, (1.0 / low) * (1 + 4 * ia.UNIT), np.inf),
         )
     return f - grad * (relu * inverse)[:, None]
 
@@ -118,35 +123,25 @@ def cell_bounds(
         step: h, the step in model time (seconds / :attr:`PolicyModel.time`).
         eta: Relative error allowed to a deployed step (see the module's docstring).
     """
+    with np.errstate(all="ignore"):
+        return _cell_bounds(model, lo, hi, step=step, eta=eta)
+
+
+def _cell_bounds(
+    model: PolicyModel, lo: np.ndarray, hi: np.ndarray, *, step: float, eta: float
+) -> CellBounds:
     center = 0.5 * lo + 0.5 * hi
     half = ia.up(np.maximum(hi - center, center - lo), 2)
     n = lo.shape[1]
-    at_center = v_jet(model, center, center, order=1)
-    over = v_jet(model, lo, hi, order=2)
-    h_lo, h_hi = gershgorin(over.hess)
-    width2 = ia.up((half * half).sum(-1), n + 2)
-    linear = ia.up((at_center.grad.mag[..., 0] * half).sum(-1), n + 2)
-    v_lo = at_center.value.lo[:, 0] - linear - 0.5 * np.maximum(-h_lo, 0.0) * width2
-    v_lo = np.maximum(v_lo - np.abs(v_lo) * 1e-15, 0.0)
-    v_hi = at_center.value.hi[:, 0] + linear + 0.5 * np.maximum(h_hi, 0.0) * width2
-    v_hi = v_hi * (1 + 1e-15) + ia.TINY
-    grad = _mean_value(
-        at_center.grad[..., 0],
-        ia.Iv(over.hess.m[..., 0], over.hess.r[..., 0]),
-        half,
-        over.grad[..., 0],
-    )
-    # The same quantities as Taylor models (snds.certify.affine): each enclosure holds the
-    # true values, so their intersection does too.
     forms = v_forms(model, center, half, order=1)
-    v_lo = np.maximum(v_lo, forms.value.lo[:, 0])
-    v_hi = np.minimum(v_hi, forms.value.hi[:, 0])
-    grad = _meet(grad, forms.grad.interval()[..., 0])
+    v_lo = np.maximum(forms.value.lo[:, 0], 0.0)
+    v_hi = forms.value.hi[:, 0]
+    grad = forms.grad.interval()[..., 0]
     grad_lo, grad_hi = _norm_lo(grad.mig), _norm_hi(grad.mag)
     rate_lo, rate_hi = rate_bounds(model, lo, hi)
     a_lo = np.maximum(v_lo * rate_lo * (1 - 4 * ia.UNIT), 0.0)
     a_hi = ia.up(v_hi * np.maximum(rate_hi, 0.0), 2)
-    f = f_forms(model, center, half).interval()
+    f = f_quadratic(model, center, half).interval()
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         ratio = np.where(grad_lo > 0, ia.up(a_hi / grad_lo, 2), np.inf)
         speed = ia.up(np.sqrt(ia.up((f.mag**2).sum(-1) + ratio**2, n + 3)), 2)
@@ -156,9 +151,7 @@ def cell_bounds(
     quadratic = np.full(len(lo), np.inf)
     if finite.any():
         c, w, r = center[finite], half[finite], reach[finite, None]
-        grown = v_jet(model, lo[finite] - r, hi[finite] + r, order=2).hess
-        tight = v_forms(model, c, w + r, order=2).hess.interval()
-        hess = _meet(ia.Iv(grown.m[..., 0], grown.r[..., 0]), tight[..., 0])
+        hess = v_forms(model, c, ia.up(w + r, 1), order=2).hess.interval()[..., 0]
         top = gershgorin(ia.Iv(hess.m[..., None], hess.r[..., None]))[1]
         curvature[finite] = np.maximum(top, 0.0)
         # Along the step itself: pi^T H pi over the cell's pi and the segments' H, from the
@@ -174,7 +167,17 @@ def cell_bounds(
         gain = step * a_lo * (1 - 4 * ia.UNIT)
         loss = ia.up(step * eta * grad_hi * speed + 0.5 * step**2 * quadratic, 8)
         decrease = np.where(np.isfinite(loss), gain - loss, -np.inf)
+        # The bounds hold over the segments of every step up to h, and the condition
+        # h a_lo > h eta G P + h^2 Q / 2 only gets easier as h shrinks.
+        spare = a_lo * (1 - 4 * ia.UNIT) - ia.up(eta * grad_hi * speed, 3)
+        largest = np.where(
+            (spare > 0) & np.isfinite(quadratic),
+            np.minimum(step, 2.0 * spare / quadratic * (1 - 1e-12)),
+            0.0,
+        )
+        largest = np.where(np.isfinite(largest) & (largest > 0), largest, 0.0)
     if not model.projected:
         # pi = f: grad V . pi <= -a does not hold, so nothing here proves a decrease.
         decrease = np.full(len(lo), -np.inf)
-    return CellBounds(a_lo, speed, grad_hi, curvature, decrease)
+        largest = np.zeros(len(lo))
+    return CellBounds(a_lo, speed, grad_hi, quadratic, decrease, largest)

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import math
 import time
 from dataclasses import dataclass
 from fractions import Fraction
@@ -59,7 +58,7 @@ class VerifyConfig:
         eta: Relative error allowed to a deployed step (None: :data:`ETA` of ``dtype``).
         max_level: Deepest dyadic level of a cell.
         budget: Most cells bounded per search.
-        bisections: Searches that bisect for the largest certified step.
+        start_level: Dyadic level of the first cells.
     """
 
     box_factor: float = 3.0
@@ -68,7 +67,7 @@ class VerifyConfig:
     eta: float | None = None
     max_level: int = 16
     budget: int = 200_000
-    bisections: int = 4
+    start_level: int = 6
 
 
 def _cells(rows: np.ndarray) -> list[list[int]]:
@@ -83,11 +82,16 @@ def certify(
     config: VerifyConfig = VerifyConfig(),
     sampled_safe_dt: float | None = None,
 ) -> dict:
-    """Proves one step of ``dt`` seconds over the box, then bisects for the largest step.
+    """Proves one step of ``dt`` seconds over the box by branch and bound.
+
+    If every cell is proven, the certificate is for ``dt``. If not, and no cell is refuted,
+    each bounded cell still proves every step up to its own largest one; the smallest of these
+    is proven over the whole box, and the certificate is for that step (``dt`` in the file;
+    ``requested_dt``, ``requested_status`` and ``requested_proven_fraction`` say how the
+    requested step fared).
 
     Returns:
-        The certificate (JSON-ready dict) of the step ``dt``, with ``largest_certified_dt``:
-        the largest step whose search proved every cell (0 if none did).
+        The certificate (JSON-ready dict).
     """
     cpu, wall = time.process_time(), time.perf_counter()
     model = PolicyModel.from_policy(policy)
@@ -108,27 +112,47 @@ def certify(
             max_level=config.max_level,
             budget=config.budget,
             start=start,
+            start_level=config.start_level,
         )
 
     result = search(dt)
-    good, bad = (dt, None) if result.complete else (0.0, dt)
-    partition = _partition(result) if result.complete else None
-    if result.complete:
-        bad = max(dt * 4, sampled_safe_dt or 0.0)
-    for _ in range(config.bisections if bad is not None else 0):
-        trial = math.sqrt(max(good, dt / 64) * bad) if good == 0 else 0.5 * (good + bad)
-        attempt = search(trial, partition if good > 0 else None)
-        if attempt.complete:
-            good, partition = trial, _partition(attempt)
-        else:
-            bad = trial
+    step = dt / model.time
+    cells, table = result.proven, result.bounds
+    certified = dt if result.complete else 0.0
+    if not result.complete and not len(result.refuted):
+        # Every bounded cell proves every step up to its own largest step: the smallest of
+        # them is proven over the whole box (minus the ball), with the same cells.
+        smallest = result.largest_step()
+        if smallest > 0:
+            step = smallest
+            certified = smallest * model.time
+            cells = np.concatenate([result.proven, result.open])
+            table = np.concatenate([result.bounds, result.open_bounds])
+    if certified > 0 and certified != dt:
+        a_lo, speed, grad_hi, quadratic = table[:, 0], table[:, 1], table[:, 2], table[:, 3]
+        gain = step * a_lo * (1 - 1e-15)
+        loss = (step * eta * grad_hi * speed + 0.5 * step**2 * quadratic) * (1 + 1e-12)
+        table = table.copy()
+        table[:, 4] = gain - loss
+    proven_here = certified > 0
+    rows = (
+        [c + b for c, b in zip(_cells(cells), table.tolist())]
+        if proven_here
+        else [c + b for c, b in zip(_cells(result.proven), result.bounds.tolist())]
+    )
+    open_rows = [] if proven_here else _cells(result.open)
     return {
         "format": FORMAT,
         "weights_sha256": weights_sha256,
         "dtype": config.dtype,
         "eta": eta,
-        "dt": dt,
-        "rate_hz": 1.0 / dt,
+        "dt": certified if proven_here else dt,
+        "rate_hz": 1.0 / (certified if proven_here else dt),
+        "requested_dt": dt,
+        "requested_status": "proven"
+        if result.complete
+        else ("refuted" if len(result.refuted) else "open"),
+        "requested_proven_fraction": _volume(result.proven, model.dim),
         "time_scale": model.time,
         "length_scale": model.length,
         "target": [float(c) for c in policy.target],
@@ -136,15 +160,18 @@ def certify(
         "box_factor": config.box_factor,
         "excluded_radius": radius,
         "excluded_radius_user": radius * model.length,
-        "proven": [c + b for c, b in zip(_cells(result.proven), result.bounds.tolist())],
-        "bounds_columns": ["a_lo", "speed", "grad_hi", "curvature", "decrease"],
+        "excluded_fraction_of_extent": config.radius_factor,
+        "proven": rows,
+        "bounds_columns": ["a_lo", "speed", "grad_hi", "quadratic", "decrease", "largest_step"],
         "excluded": _cells(result.excluded),
-        "open": _cells(result.open),
+        "open": open_rows,
         "refuted": _cells(result.refuted),
         "counterexamples": [vars(c) for c in result.counterexamples[:20]],
-        "status": "proven" if result.complete else ("refuted" if len(result.refuted) else "open"),
-        "proven_fraction": _volume(result.proven, model.dim),
-        "largest_certified_dt": good,
+        "status": "proven" if proven_here else ("refuted" if len(result.refuted) else "open"),
+        "proven_fraction": 1.0 - _volume(result.excluded, model.dim)
+        if proven_here
+        else (_volume(result.proven, model.dim)),
+        "largest_certified_dt": certified,
         "sampled_largest_safe_dt": sampled_safe_dt,
         "cells_bounded": result.evaluated,
         "cpu_seconds": time.process_time() - cpu,

@@ -16,13 +16,10 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from snds.certify import affine
+from snds.certify import affine, jets, quadratic
 from snds.certify import interval as ia
-from snds.certify import jets
 from snds.certify.interval import Iv
 from snds.certify.jets import Jet
-
-ELEMENTWISE_FNS = affine.ELEMENTWISE
 from snds.errors import SNDSError
 from snds.nn import MLP, FourierFeatures, WarpedLyapunov
 from snds.policy import Policy, StablePolicy, float64_copy
@@ -30,8 +27,8 @@ from snds.policy import Policy, StablePolicy, float64_copy
 __all__ = [
     "NotCertifiable",
     "PolicyModel",
-    "f_forms",
     "f_jet",
+    "f_quadratic",
     "rate_bounds",
     "v_forms",
     "v_jet",
@@ -211,9 +208,7 @@ def _affine_fns(name: str, slope: float = 0.0):  # noqa: ANN202
 
 def _net(layers: tuple, fourier: np.ndarray, x: Jet, fns) -> Jet:  # noqa: ANN001
     angles = jets.linear(x, fourier)
-    h = jets.concat(
-        [x, jets.elementwise(angles, fns("sin")), jets.elementwise(angles, fns("cos"))]
-    )
+    h = jets.concat([x, jets.elementwise(angles, fns("sin")), jets.elementwise(angles, fns("cos"))])
     for k, (weight, bias) in enumerate(layers):
         h = jets.linear(h, weight, bias)
         if k + 1 < len(layers):
@@ -245,19 +240,16 @@ def f_jet(model: PolicyModel, lo: np.ndarray, hi: np.ndarray) -> Jet:
     return net.shift(-model.net0)
 
 
-def f_forms(model: PolicyModel, center: np.ndarray, half: np.ndarray) -> affine.Aff:
-    """f over the cells |x - c| <= w as Taylor models, values (C, n)."""
-    x = affine.variable(center, half)
+def f_quadratic(model: PolicyModel, center: np.ndarray, half: np.ndarray) -> quadratic.Quad:
+    """f over the cells |x - c| <= w as second-order Taylor models, values (C, n)."""
+    x = quadratic.variable(center, half)
     angles = x.matmul(model.fourier)
-    sin, cos = ELEMENTWISE_FNS["sin"], ELEMENTWISE_FNS["cos"]
-    h = affine.concat([x, affine.apply(angles, sin[0][:2], sin[1][2]),
-                       affine.apply(angles, cos[0][:2], cos[1][2])])
-    silu = ELEMENTWISE_FNS["silu"]
+    h = quadratic.concat([x, quadratic.apply(angles, "sin"), quadratic.apply(angles, "cos")])
     for k, (weight, bias) in enumerate(model.layers):
-        h = h.matmul(weight) + ia.point(bias)
+        h = h.matmul(weight).shift(ia.point(bias))
         if k + 1 < len(model.layers):
-            h = affine.apply(h, silu[0][:2], silu[1][2])
-    return h - model.net0
+            h = quadratic.apply(h, "silu")
+    return h.shift(-model.net0)
 
 
 def _lyapunov(model: PolicyModel, x: Jet, fns) -> Jet:  # noqa: ANN001

@@ -427,20 +427,16 @@ def recheck(policy: Policy, certificate: dict, *, weights_sha256: str) -> Rechec
                 break
         checked = 0
         for row in certificate["proven"]:
-            cell, (a_rec, speed_rec, grad_rec, curv_rec, dec_rec) = row[: n + 1], row[n + 1 :]
+            cell, (a_rec, speed_rec, grad_rec, quad_rec, dec_rec) = row[: n + 1], row[n + 1 : n + 6]
             ok, a_c, speed_c = _prove_cell(model, cell, half, step, eta)
             if not ok:
                 ok = _prove_split(model, cell, half, step, eta, depth=2)
             checked += 1
             if not ok:
                 failures.append(f"cell {cell}: not proven by the re-check's bounds")
-            if a_rec > a_c.upper() or speed_rec < speed_c.lower() or curv_rec < 0:
+            if a_rec > a_c.upper() or speed_rec < speed_c.lower() or quad_rec < 0:
                 failures.append(f"cell {cell}: its recorded bounds are false at its centre")
-            claimed = (
-                step * a_rec
-                - step * eta * grad_rec * speed_rec
-                - (0.5 * curv_rec * (1 + eta) ** 2 * step**2 * speed_rec**2)
-            )
+            claimed = step * a_rec - step * eta * grad_rec * speed_rec - 0.5 * step**2 * quad_rec
             if dec_rec > claimed * (1 + 1e-9) + 1e-300 or dec_rec <= 0:
                 failures.append(f"cell {cell}: its recorded decrease does not follow its bounds")
     finally:

@@ -49,10 +49,11 @@ class Search:
     """What a branch and bound found: cells as (level, index...) rows, and bounds.
 
     Attributes:
-        proven: Proven cells (K, 1 + n), with their bounds ``bounds`` (K, 5): a_lo, P, G, M and
-            the decrease's lower bound.
+        proven: Proven cells (K, 1 + n), with their bounds ``bounds`` (K, 6): a_lo, P, G, Q,
+            the decrease's lower bound and the cell's largest proven step (model time).
         excluded: Cells inside the excluded ball.
         open: Cells neither proven nor refuted.
+        open_bounds: The bounds of the open cells (0 for cells never bounded).
         refuted: Cells whose centre is a counterexample.
         counterexamples: One per refuted cell.
         evaluated: Cells bounded.
@@ -63,11 +64,20 @@ class Search:
     bounds: np.ndarray
     excluded: np.ndarray
     open: np.ndarray
+    open_bounds: np.ndarray
     refuted: np.ndarray
     counterexamples: list[Counterexample] = field(default_factory=list)
     evaluated: int = 0
     cpu_seconds: float = 0.0
     wall_seconds: float = 0.0
+
+    def largest_step(self) -> float:
+        """The largest step (model time) that the bounds prove on every cell outside the
+        ball (0 if a cell is refuted or was never bounded)."""
+        if len(self.refuted):
+            return 0.0
+        steps = np.concatenate([self.bounds[:, 5], self.open_bounds[:, 5]])
+        return float(steps.min()) if len(steps) else 0.0
 
     @property
     def complete(self) -> bool:
@@ -176,11 +186,13 @@ def prove(
         start = np.concatenate([np.full((len(grid), 1), start_level), grid], 1)
     pending = [np.asarray(start, dtype=np.int64)]
     proven, bounds, excluded, still_open, refuted, examples = [], [], [], [], [], []
+    open_bounds = []
     evaluated = 0
     while pending:
         cells = pending.pop()
         if evaluated >= budget:
             still_open.append(cells)
+            open_bounds.append(np.zeros((len(cells), 6)))
             continue
         if len(cells) > chunk:
             pending += [cells[chunk:], cells[:chunk]]
@@ -195,22 +207,30 @@ def prove(
         evaluated += len(cells)
         result = cell_bounds(model, lo, hi, step=step, eta=eta)
         ok = result.proven
-        proven.append(cells[ok])
-        bounds.append(
-            np.stack(
-                [result.a_lo, result.speed, result.grad_hi, result.curvature, result.decrease], 1
-            )[ok]
+        table = np.stack(
+            [
+                result.a_lo,
+                result.speed,
+                result.grad_hi,
+                result.quadratic,
+                result.decrease,
+                result.largest_step,
+            ],
+            1,
         )
-        failing, f_lo, f_hi = cells[~ok], lo[~ok], hi[~ok]
+        proven.append(cells[ok])
+        bounds.append(table[ok])
+        failing, f_lo, f_hi, f_table = cells[~ok], lo[~ok], hi[~ok], table[~ok]
         if not len(failing):
             continue
         found = _refute(model, policy, f_lo, f_hi, dt=dt, dtype=dtype)
         bad = np.array([c is not None for c in found])
         refuted.append(failing[bad])
         examples += [c for c in found if c is not None]
-        rest = failing[~bad]
+        rest, rest_table = failing[~bad], f_table[~bad]
         deepest = rest[:, 0] >= max_level
         still_open.append(rest[deepest])
+        open_bounds.append(rest_table[deepest])
         if (~deepest).any():
             pending.append(_children(rest[~deepest]))
 
@@ -220,9 +240,10 @@ def prove(
 
     return Search(
         proven=stack(proven, n + 1),
-        bounds=stack(bounds, 5).astype(np.float64),
+        bounds=stack(bounds, 6).astype(np.float64),
         excluded=stack(excluded, n + 1),
         open=stack(still_open, n + 1),
+        open_bounds=stack(open_bounds, 6).astype(np.float64),
         refuted=stack(refuted, n + 1),
         counterexamples=examples,
         evaluated=evaluated,
