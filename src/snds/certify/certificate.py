@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import time
 from dataclasses import dataclass
 from fractions import Fraction
@@ -58,7 +59,8 @@ class VerifyConfig:
         eta: Relative error allowed to a deployed step (None: :data:`ETA` of ``dtype``).
         max_level: Deepest dyadic level of a cell.
         budget: Most cells bounded per search.
-        start_level: Dyadic level of the first cells.
+        start_size: Largest side of the first cells, in extents (the first level is the
+            coarsest whose cells are no wider; at least level 3).
     """
 
     box_factor: float = 3.0
@@ -67,7 +69,7 @@ class VerifyConfig:
     eta: float | None = None
     max_level: int = 16
     budget: int = 200_000
-    start_level: int = 6
+    start_size: float = 0.1
 
 
 def _cells(rows: np.ndarray) -> list[list[int]]:
@@ -112,7 +114,7 @@ def certify(
             max_level=config.max_level,
             budget=config.budget,
             start=start,
-            start_level=config.start_level,
+            start_level=max(3, math.ceil(math.log2(2 * half / (config.start_size * scale)))),
         )
 
     result = search(dt)

@@ -373,7 +373,9 @@ def _prove_split(
     return True
 
 
-def recheck(policy: Policy, certificate: dict, *, weights_sha256: str) -> Recheck:
+def recheck(
+    policy: Policy, certificate: dict, *, weights_sha256: str, max_failures: int = 10
+) -> Recheck:
     """Re-proves every proven cell of a certificate and checks its tiling and header.
 
     Arguments:
@@ -381,6 +383,7 @@ def recheck(policy: Policy, certificate: dict, *, weights_sha256: str) -> Rechec
         certificate: The certificate (as read by
             :func:`snds.certify.certificate.read_certificate`).
         weights_sha256: The model's weights hash, which must match the certificate's.
+        max_failures: Stop after this many failed checks.
     """
     cpu = time.process_time()
     flint = _flint()
@@ -427,6 +430,8 @@ def recheck(policy: Policy, certificate: dict, *, weights_sha256: str) -> Rechec
                 break
         checked = 0
         for row in certificate["proven"]:
+            if len(failures) >= max_failures:
+                break
             cell, (a_rec, speed_rec, grad_rec, quad_rec, dec_rec) = row[: n + 1], row[n + 1 : n + 6]
             ok, a_c, speed_c = _prove_cell(model, cell, half, step, eta)
             if not ok:

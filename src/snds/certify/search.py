@@ -134,13 +134,21 @@ def _refute(
     nxt = deployed_step(policy, states, dt=dt, dtype=dtype)
     before = _v_bounds(model, states, center_user)
     after = _v_bounds(model, nxt, center_user)
-    found = after.lo > before.hi
-    return [
-        Counterexample(states[k].tolist(), nxt[k].tolist(), float(before.hi[k]), float(after.lo[k]))
-        if found[k]
-        else None
-        for k in range(len(states))
-    ]
+    found: list[Counterexample | None] = [None] * len(states)
+    # A controller steps one state at a time, and a batched product may round differently in
+    # the last bit: each candidate is stepped again alone, and only what that shows counts.
+    for k in np.flatnonzero(after.lo > before.hi)[:_ALONE]:
+        alone = deployed_step(policy, states[k : k + 1], dt=dt, dtype=dtype)
+        v_next = _v_bounds(model, alone, center_user)
+        if v_next.lo[0] > before.hi[k]:
+            found[k] = Counterexample(
+                states[k].tolist(), alone[0].tolist(), float(before.hi[k]), float(v_next.lo[0])
+            )
+    return found
+
+
+#: Candidate counterexamples per batch stepped again one at a time.
+_ALONE = 64
 
 
 def prove(
@@ -157,6 +165,7 @@ def prove(
     budget: int = 200_000,
     chunk: int = 4096,
     start: np.ndarray | None = None,
+    stop_at_refutation: bool = True,
 ) -> Search:
     """Branch and bound over the box [-B, B]^n at one step.
 
@@ -173,6 +182,8 @@ def prove(
         budget: Most cells bounded; what is still pending then stays open.
         chunk: Cells bounded per pass.
         start: Cells to start from instead of the regular grid (a partition of the box).
+        stop_at_refutation: Stop at the first counterexample (the step is refuted; the
+            cells not yet proven stay open).
 
     Returns:
         The :class:`Search`.
@@ -190,7 +201,7 @@ def prove(
     evaluated = 0
     while pending:
         cells = pending.pop()
-        if evaluated >= budget:
+        if evaluated >= budget or (stop_at_refutation and examples):
             still_open.append(cells)
             open_bounds.append(np.zeros((len(cells), 6)))
             continue
