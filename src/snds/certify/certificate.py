@@ -60,7 +60,9 @@ class VerifyConfig:
         max_level: Deepest dyadic level of a cell.
         budget: Most cells bounded per search.
         start_size: Largest side of the first cells, in extents (the first level is the
-            coarsest whose cells are no wider; at least level 3).
+            coarsest whose cells are no wider; at least level 3). No wider either than 1.5
+            radians of the nominal field's fastest Fourier feature: its bounds are useless on
+            wider cells, which would only be bounded to be split.
     """
 
     box_factor: float = 3.0
@@ -102,6 +104,9 @@ def certify(
     scale = float(policy.normalization.extent) / model.length
     half, radius = config.box_factor * scale, config.radius_factor * scale
 
+    fastest = float(np.abs(model.fourier).sum(0).max())
+    first = min(config.start_size * scale, 1.5 / fastest)
+
     def search(step: float, start: np.ndarray | None = None) -> Search:
         return prove(
             model,
@@ -114,7 +119,7 @@ def certify(
             max_level=config.max_level,
             budget=config.budget,
             start=start,
-            start_level=max(3, math.ceil(math.log2(2 * half / (config.start_size * scale)))),
+            start_level=max(3, math.ceil(math.log2(2 * half / first))),
         )
 
     result = search(dt)
