@@ -459,6 +459,12 @@ def recheck(
             proven[begin : begin + 2048] = ok
             a_center[begin : begin + 2048] = a_c
             speed_center[begin : begin + 2048] = speed_c
+        # Second-order models for the cells first-order ones leave.
+        again = np.flatnonzero(~proven)
+        for begin in range(0, len(again), 1024):
+            part = again[begin : begin + 1024]
+            lo, hi = _corners(cells[part], half)
+            proven[part] = reprover.prove(lo, hi, step=step, eta=eta, second=True)[0]
         stubborn = np.flatnonzero(~proven)
         for k in stubborn[:_ARB_CELLS]:
             cell = cells[k].tolist()

@@ -102,9 +102,12 @@ class Reprover:
             h = self._elementwise(u, self.leaky)
         return self._add(self._linear(h, w.icnn_out[0]), self._linear(z, w.icnn_out[1]))
 
-    def lyapunov(self, center: np.ndarray, half: np.ndarray) -> tuple[Pair, Pair, Pair]:
-        """Enclosures of V (C,), grad V (C, n) and its Hessian (C, n, n) over the cells."""
-        z = self._flow(rt.jet_variable(center, half))
+    def lyapunov(
+        self, center: np.ndarray, half: np.ndarray, *, second: bool = False
+    ) -> tuple[Pair, Pair, Pair]:
+        """Enclosures of V (C,), grad V (C, n) and its Hessian (C, n, n) over the cells, from
+        first-order models (second-order with ``second``: tighter, about twice the cost)."""
+        z = self._flow(rt.jet_variable(center, half, second=second))
         z = (z[0].plus(-self.phi0), z[1], z[2])
         g = self._icnn(z)
         d = self.w.quadratic
@@ -154,13 +157,13 @@ class Reprover:
         return Pair(low - np.abs(low) * 1e-12 - 1e-300, high + np.abs(high) * 1e-12 + 1e-300)
 
     def prove(
-        self, lo: np.ndarray, hi: np.ndarray, *, step: float, eta: float
+        self, lo: np.ndarray, hi: np.ndarray, *, step: float, eta: float, second: bool = False
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Which cells [lo, hi] (C, n) these bounds prove; also a at the cells' centres and
         |pi| there (upper and lower bounds, to test the numbers a certificate records)."""
         center = 0.5 * lo + 0.5 * hi
         half = _up(np.maximum(hi - center, center - lo) * (1 + 1e-15))
-        v, grad, _ = self.lyapunov(center, half)
+        v, grad, _ = self.lyapunov(center, half, second=second)
         rate = self.rate(lo, hi)
         v_lo, v_hi = np.maximum(v.lo, 0.0), v.hi
         a_lo = np.maximum(v_lo * rate.lo * (1 - 1e-15), 0.0)
@@ -179,7 +182,7 @@ class Reprover:
         proven = np.zeros(len(lo), dtype=bool)
         if ok.any():
             grown = _up(half[ok] + reach[ok, None])
-            _, _, hess = self.lyapunov(center[ok], grown)
+            _, _, hess = self.lyapunov(center[ok], grown, second=second)
             n = hess.lo.shape[-1]
             diag = np.arange(n)
             off = hess.mag.sum(-1) - hess.mag[:, diag, diag]

@@ -101,7 +101,7 @@ class TM:
 
     c: Pair
     lin: Pair
-    quad: Pair
+    quad: Pair | None
     rem: np.ndarray
     w: np.ndarray
 
@@ -114,7 +114,9 @@ class TM:
         return _up((self.lin.mag * self._wl()).sum(1) * (1 + 4 * _EPS))
 
     def spread_square(self) -> np.ndarray:
-        """Upper bound of |u^T Q u|."""
+        """Upper bound of |u^T Q u| (0 for a first-order model, quad None)."""
+        if self.quad is None:
+            return np.zeros_like(self.rem)
         w = self._wl()
         return _up((self.quad.mag * w[:, :, None] * w[:, None, :]).sum((1, 2)) * (1 + 8 * _EPS))
 
@@ -127,13 +129,14 @@ class TM:
         return TM(
             self.c + other.c,
             self.lin + other.lin,
-            self.quad + other.quad,
+            None if self.quad is None or other.quad is None else self.quad + other.quad,
             _up(self.rem + other.rem),
             self.w,
         )
 
     def __neg__(self) -> TM:
-        return TM(-self.c, -self.lin, -self.quad, self.rem, self.w)
+        quad = None if self.quad is None else -self.quad
+        return TM(-self.c, -self.lin, quad, self.rem, self.w)
 
     def __sub__(self, other: TM) -> TM:
         return self + (-other)
@@ -146,7 +149,8 @@ class TM:
         """Over the last axis, W (k, j) floats."""
         k = weight.shape[0]
         rem = _up((self.rem @ np.abs(weight)) * (1 + (k + 2) * _EPS)) + 1e-300
-        return TM(self.c.dot(weight), self.lin.dot(weight), self.quad.dot(weight), rem, self.w)
+        quad = None if self.quad is None else self.quad.dot(weight)
+        return TM(self.c.dot(weight), self.lin.dot(weight), quad, rem, self.w)
 
     def dot_pair(self, weight: Pair) -> TM:
         """Over the last axis, W (k, j) intervals: mid W plus the radius's worst case."""
@@ -161,12 +165,17 @@ class TM:
         a, b = self, other
         c = a.c * b.c
         lin = a.lin * b.c[:, None] + b.lin * a.c[:, None]
-        outer = a.lin[:, :, None] * b.lin[:, None, :]
-        quad = a.quad * b.c[:, None, None] + b.quad * a.c[:, None, None] + outer
         la, qa, lb, qb = a.spread_linear(), a.spread_square(), b.spread_linear(), b.spread_square()
         full_a = _sum_up([a.c.mag, la, qa, a.rem])
         full_b = _sum_up([b.c.mag, lb, qb, b.rem])
-        rem = _sum_up([la * qb, qa * lb, qa * qb, full_a * b.rem, full_b * a.rem])
+        if a.quad is None or b.quad is None:
+            # First order: the product of the linear parts joins the remainder.
+            quad = None
+            rem = _sum_up([la * lb, la * qb, qa * lb, qa * qb, full_a * b.rem, full_b * a.rem])
+        else:
+            outer = a.lin[:, :, None] * b.lin[:, None, :]
+            quad = a.quad * b.c[:, None, None] + b.quad * a.c[:, None, None] + outer
+            rem = _sum_up([la * qb, qa * lb, qa * qb, full_a * b.rem, full_b * a.rem])
         return TM(c, lin, quad, _up(rem * (1 + 8 * _EPS)), self.w)
 
     def __getitem__(self, index) -> TM:  # noqa: ANN001
@@ -178,7 +187,7 @@ class TM:
         return TM(
             self.c[(first, *rest)],
             self.lin[(first, slice(None), *rest)],
-            self.quad[(first, slice(None), slice(None), *rest)],
+            None if self.quad is None else self.quad[(first, slice(None), slice(None), *rest)],
             self.rem[(first, *rest)],
             self.w,
         )
@@ -195,21 +204,28 @@ def variable(center: np.ndarray, half: np.ndarray) -> TM:
 def _constant(values: np.ndarray, half: np.ndarray) -> TM:
     c, n = half.shape
     shape = values.shape[1:]
-    return TM(
-        _point(values),
-        _point(np.zeros((c, n, *shape))),
-        _point(np.zeros((c, n, n, *shape))),
-        np.zeros(values.shape),
-        half,
-    )
+    return TM(_point(values), _point(np.zeros((c, n, *shape))), None, np.zeros(values.shape), half)
 
 
-def jet_variable(center: np.ndarray, half: np.ndarray) -> tuple[TM, TM, TM]:
+def jet_variable(center: np.ndarray, half: np.ndarray, *, second: bool = False) -> tuple:
     """x, its gradient (the identity, (C, n, n): derivative index then component) and its
-    Hessian (zero, (C, n, n, n)), each a model."""
+    Hessian (zero, (C, n, n, n)), each a first-order model (V's jets are carried to first
+    order, their second-order terms in the remainder with global derivative bounds, unless
+    ``second``)."""
     c, n = center.shape
     eye = np.broadcast_to(np.eye(n), (c, n, n)).copy()
-    return variable(center, half), _constant(eye, half), _constant(np.zeros((c, n, n, n)), half)
+    x = variable(center, half)
+    grad, hess = _constant(eye, half), _constant(np.zeros((c, n, n, n)), half)
+    if second:
+        return x, _second(grad), _second(hess)
+    return TM(x.c, x.lin, None, x.rem, half), grad, hess
+
+
+def _second(x: TM) -> TM:
+    """A first-order model with zero second-order coefficients."""
+    n = x.w.shape[1]
+    shape = (x.c.lo.shape[0], n, n, *x.c.lo.shape[1:])
+    return TM(x.c, x.lin, _point(np.zeros(shape)), x.rem, x.w)
 
 
 def _sig(v: np.ndarray) -> np.ndarray:
@@ -293,6 +309,10 @@ def _apply_one(x: TM, fns: list, bounds: list, j: int) -> TM:
     tail = _up(square + x.rem)
     reach = _up(linear + tail)
     lin = x.lin * g1[:, None]
+    if x.quad is None:
+        # First order: g^(j)(q) = g0 + g1 delta + g^(j+2)(xi) delta^2 / 2, |g^(j+2)| bounded.
+        rem = _sum_up([g1.mag * x.rem, (0.5 * bounds[j + 2]) * reach * reach])
+        return TM(g0, lin, None, _up(rem * (1 + 16 * _EPS)), x.w)
     outer = x.lin[:, :, None] * x.lin[:, None, :]
     half_g2 = Pair(g2.lo * 0.5, g2.hi * 0.5)
     quad = x.quad * g1[:, None, None] + outer * half_g2[:, None, None]
