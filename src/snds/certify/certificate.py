@@ -181,6 +181,7 @@ def certify(
         "largest_certified_dt": certified,
         "sampled_largest_safe_dt": sampled_safe_dt,
         "cells_bounded": result.evaluated,
+        "cells_never_bounded": result.unbounded,
         "cpu_seconds": time.process_time() - cpu,
         "wall_seconds": time.perf_counter() - wall,
     }

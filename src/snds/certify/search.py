@@ -13,6 +13,7 @@ states) refutes the cell with that concrete state.
 from __future__ import annotations
 
 import time
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -57,6 +58,8 @@ class Search:
         refuted: Cells whose centre is a counterexample.
         counterexamples: One per refuted cell.
         evaluated: Cells bounded.
+        unbounded: Open cells never bounded (the budget ran out, or a counterexample stopped
+            the search first).
         cpu_seconds, wall_seconds: Time taken.
     """
 
@@ -68,6 +71,7 @@ class Search:
     refuted: np.ndarray
     counterexamples: list[Counterexample] = field(default_factory=list)
     evaluated: int = 0
+    unbounded: int = 0
     cpu_seconds: float = 0.0
     wall_seconds: float = 0.0
 
@@ -195,18 +199,21 @@ def prove(
         side = 2**start_level
         grid = np.array(np.meshgrid(*[np.arange(side)] * n, indexing="ij")).reshape(n, -1).T
         start = np.concatenate([np.full((len(grid), 1), start_level), grid], 1)
-    pending = [np.asarray(start, dtype=np.int64)]
+    # Breadth first, so that a budget that runs out leaves the open cells spread evenly.
+    pending = deque([np.asarray(start, dtype=np.int64)])
     proven, bounds, excluded, still_open, refuted, examples = [], [], [], [], [], []
     open_bounds = []
-    evaluated = 0
+    evaluated = unbounded = 0
     while pending:
-        cells = pending.pop()
+        cells = pending.popleft()
         if evaluated >= budget or (stop_at_refutation and examples):
             still_open.append(cells)
             open_bounds.append(np.zeros((len(cells), 6)))
+            unbounded += len(cells)
             continue
         if len(cells) > chunk:
-            pending += [cells[chunk:], cells[:chunk]]
+            pending.appendleft(cells[chunk:])
+            pending.appendleft(cells[:chunk])
             continue
         lo, hi = corners(cells, half_width)
         far = np.sqrt((np.maximum(np.abs(lo), np.abs(hi)) ** 2).sum(-1)) * (1 + 1e-12)
@@ -258,6 +265,7 @@ def prove(
         refuted=stack(refuted, n + 1),
         counterexamples=examples,
         evaluated=evaluated,
+        unbounded=unbounded,
         cpu_seconds=time.process_time() - cpu,
         wall_seconds=time.perf_counter() - wall,
     )

@@ -95,7 +95,8 @@ def run(args: argparse.Namespace) -> int:
         print(
             f"{out}: {c['status']} at {c['rate_hz']:.4g} Hz ({c['dtype']}): "
             f"{100 * c['proven_fraction']:.2f}% of the {c['box_factor']:g}x box proven, "
-            f"{len(c['open'])} open and {len(c['refuted'])} refuted cells, excluded ball "
+            f"{len(c['open'])} open ({c['cells_never_bounded']} never bounded within the "
+            f"budget) and {len(c['refuted'])} refuted cells, excluded ball "
             f"{c['excluded_radius_user']:.3g} around the target; largest certified step "
             f"{best:.3g} s (sampled largest safe step {sampled if sampled else float('nan'):.3g} "
             f"s); {c['cpu_seconds']:.1f} CPU s"
