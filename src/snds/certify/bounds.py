@@ -5,7 +5,7 @@ exactly. A deployed step moves a state by some :math:`\Delta` with
 :math:`|\Delta - h \pi(x)| \le \eta\, h |\pi(x)|` (:math:`\eta` covers the rounding of the
 controller's arithmetic). Taylor's theorem with the Hessian on the segment gives
 
-.. math:: V(x + \Delta) - V(x) \le -h a(x) + h\, \eta\, |\nabla V(x)|\, |\pi(x)|
+.. math:: V(x + \Delta) - V(x) \le h \nabla V^\top \pi + h\, \eta\, |\nabla V(x)|\, |\pi(x)|
           + \tfrac12 M (1 + \eta)^2 h^2 |\pi(x)|^2,
 
 with M an upper bound of the largest eigenvalue of :math:`\nabla^2 V` on the segment. Over a
@@ -39,7 +39,8 @@ class CellBounds:
     """Bounds over C cells, each (C,); ``decrease`` is a lower bound of V(x) - V(x + step).
 
     Attributes:
-        a_lo: Lower bound of the decay a(x).
+        a_lo: Lower bound of the descent -grad V . pi = max(a, -grad V . f) (the ReLU
+            projection leaves f alone where it already descends faster than a).
         speed: P, upper bound of |pi(x)|.
         grad_hi: G, upper bound of |grad V(x)|.
         quadratic: Q, upper bound of Delta^T H Delta / h^2 over the steps Delta and the
@@ -164,12 +165,15 @@ def _cell_bounds(
         best = np.minimum(directional, curvature[finite] * p2)
         quadratic[finite] = ia.up(np.maximum(best, 0.0) + (2 * eta + eta**2) * rows * p2, 6)
     with np.errstate(invalid="ignore", over="ignore"):
-        gain = step * a_lo * (1 - 4 * ia.UNIT)
+        # -grad V . pi = max(a, -grad V . f) exactly for the ReLU projection: where f already
+        # descends faster than a, pi = f and the step gains that much more.
+        descent = np.maximum(a_lo, -(grad * f).sum(-1).hi)
+        gain = step * descent * (1 - 4 * ia.UNIT)
         loss = ia.up(step * eta * grad_hi * speed + 0.5 * step**2 * quadratic, 8)
         decrease = np.where(np.isfinite(loss), gain - loss, -np.inf)
         # The bounds hold over the segments of every step up to h, and the condition
         # h a_lo > h eta G P + h^2 Q / 2 only gets easier as h shrinks.
-        spare = a_lo * (1 - 4 * ia.UNIT) - ia.up(eta * grad_hi * speed, 3)
+        spare = descent * (1 - 4 * ia.UNIT) - ia.up(eta * grad_hi * speed, 3)
         largest = np.where(
             (spare > 0) & np.isfinite(quadratic),
             np.minimum(step, 2.0 * spare / quadratic * (1 - 1e-12)),
@@ -180,4 +184,4 @@ def _cell_bounds(
         # pi = f: grad V . pi <= -a does not hold, so nothing here proves a decrease.
         decrease = np.full(len(lo), -np.inf)
         largest = np.zeros(len(lo))
-    return CellBounds(a_lo, speed, grad_hi, quadratic, decrease, largest)
+    return CellBounds(descent, speed, grad_hi, quadratic, decrease, largest)

@@ -159,8 +159,9 @@ class Reprover:
     def prove(
         self, lo: np.ndarray, hi: np.ndarray, *, step: float, eta: float, second: bool = False
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Which cells [lo, hi] (C, n) these bounds prove; also a at the cells' centres and
-        |pi| there (upper and lower bounds, to test the numbers a certificate records)."""
+        """Which cells [lo, hi] (C, n) these bounds prove; also the descent -grad V . pi at
+        the cells' centres and |pi| there (upper and lower estimates, to test the numbers a
+        certificate records)."""
         center = 0.5 * lo + 0.5 * hi
         half = _up(np.maximum(hi - center, center - lo) * (1 + 1e-15))
         v, grad, _ = self.lyapunov(center, half, second=second)
@@ -196,7 +197,10 @@ class Reprover:
                 curve = np.minimum(np.maximum(along, 0.0), top * p2)
                 curve = curve + (2 * eta + eta**2) * rows * p2
                 loss = step * eta * g_hi[ok] * speed[ok] + 0.5 * step**2 * curve
-                proven[ok] = step * a_lo[ok] * (1 - 1e-14) > loss * (1 + 1e-14)
+                # -grad V . pi = max(a, -grad V . f) for the ReLU projection.
+                dot = _sum_pairs((grad[ok] * f[ok])[:, :, None])
+                descent = np.maximum(a_lo[ok], -dot.hi)
+                proven[ok] = step * descent * (1 - 1e-14) > loss * (1 + 1e-14)
         # At the centres: a and |pi| in the same arithmetic.
         v_c, g_c, _ = self.lyapunov(center, np.zeros_like(half))
         rate_c = self.rate(center, center)
@@ -207,7 +211,8 @@ class Reprover:
         norm2 = (gm * gm).sum(-1)
         excess = np.maximum((gm * fm).sum(-1) + 0.5 * (a_c.lo + a_c.hi), 0.0)
         pi = fm - gm * (excess / np.where(norm2 > 0, norm2, 1.0))[:, None]
-        return proven, a_c.hi * (1 + 1e-9) + 1e-300, np.linalg.norm(pi, axis=1) * (1 - 1e-9)
+        descent_c = np.maximum(a_c.hi, -(gm * fm).sum(-1))
+        return proven, descent_c * (1 + 1e-9) + 1e-300, np.linalg.norm(pi, axis=1) * (1 - 1e-9)
 
 
 def _sum_pairs(x: Pair) -> Pair:
