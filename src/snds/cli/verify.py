@@ -66,8 +66,8 @@ def run(args: argparse.Namespace) -> int:
         if not args.quiet:
             verdict = "confirmed" if result.ok else "REJECTED"
             print(
-                f"{args.check}: {verdict}; {result.checked} proven cells re-proven in Arb "
-                f"ball arithmetic, {result.cpu_seconds:.1f} CPU s"
+                f"{args.check}: {verdict}; {result.checked} proven cells re-checked by separate "
+                f"code (interval Taylor models, Arb balls), {result.cpu_seconds:.1f} CPU s"
             )
             for line in result.failures[:10]:
                 print(f"  {line}")
