@@ -17,7 +17,7 @@ $(VENV)/.installed: pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
 	$(PIP_INSTALL) --upgrade pip
 	$(PIP_INSTALL) torch==2.13.0
-	$(PIP_INSTALL) -e '.[dev,export,cluster,baselines,sim,app,rosbag,lerobot,hdf5,ros]'
+	$(PIP_INSTALL) -e '.[dev,export,cluster,baselines,sim,app,rosbag,lerobot,hdf5,ros,verify]'
 	touch $@
 
 demo: install

@@ -15,7 +15,7 @@ from collections.abc import Callable, Sequence
 
 import torch
 
-from snds.cli import app, benchmark, evaluate, export, plot, ros, simulate, train
+from snds.cli import app, benchmark, evaluate, export, plot, ros, simulate, train, verify
 from snds.cli.train import _policy_config
 from snds.data.options import DataWarning
 from snds.errors import SNDSError
@@ -23,7 +23,7 @@ from snds.errors import SNDSError
 __all__ = ["_build_parser", "_policy_config", "main"]
 
 #: The subcommands, in the order ``snds --help`` lists them.
-COMMANDS = (train, evaluate, plot, benchmark, simulate, export, ros, app)
+COMMANDS = (train, evaluate, plot, benchmark, simulate, export, verify, ros, app)
 
 
 def _build_parser() -> argparse.ArgumentParser:
