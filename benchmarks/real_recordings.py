@@ -187,8 +187,8 @@ def pushed(policy, demos, at: float = 0.3, size: float = 0.1) -> float:
     return worst
 
 
-def meets(row: dict) -> bool:
-    ok = all(row[k] is None or row[k] <= bar for k, bar in BARS.items())
+def meets(row: dict, bars: tuple[str, ...] = tuple(BARS)) -> bool:
+    ok = all(row[k] is None or row[k] <= BARS[k] for k in bars)
     return (
         ok
         and row["converged"] == 1.0
@@ -213,8 +213,8 @@ def table(rows: list[dict]) -> str:
         "fit CPU.",
         "",
         "| task | seeds | " + " | ".join(columns) + " | safe step / data step | check / fit CPU "
-        "| meets every bar |",
-        "|---" * (len(columns) + 5) + "|",
+        "| meets every bar | every bar but the push |",
+        "|---" * (len(columns) + 6) + "|",
     ]
     for task in TASKS:
         mine = [r for r in rows if r["task"] == task]
@@ -229,10 +229,11 @@ def table(rows: list[dict]) -> str:
         safe = min(r["safe_dt"] / r["data_dt"] for r in mine)
         check = max(r["check_cpu"] / r["train_cpu"] for r in mine)
         passed = sum(meets(r) for r in mine)
+        unpushed = sum(meets(r, tuple(k for k in BARS if k != "push")) for r in mine)
         lines.append(
             f"| {task} | {len(mine)} | "
             + " | ".join(_cell(worst[c]) for c in columns)
-            + f" | {safe:.3g} | {check:.2f} | {passed} of {len(mine)} |"
+            + f" | {safe:.3g} | {check:.2f} | {passed} of {len(mine)} | {unpushed} of {len(mine)} |"
         )
     return "\n".join(lines)
 
