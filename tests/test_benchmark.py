@@ -21,6 +21,7 @@ from snds.cli import main
 from snds.data import LASA_NAMES
 from snds.errors import DataError, SNDSError
 from snds.methods import METHODS
+from snds.recipes import RECIPES
 
 TINY = {"settings": benchmark.SweepSettings.quick(steps=30), "progress": False}
 TASKS = benchmark.make_tasks(["Line"], ["snds", "bc"], seeds=1)
@@ -371,9 +372,10 @@ def test_pose_task_sweeps_end_to_end_and_resumes(pose_sweep, monkeypatch):
     policy, description = load_model(pose_sweep / task.model_dir)
     assert isinstance(policy.space, SE3) and description["kind"] == "se3"
     assert description["data"] == {"motion": "Line", "demos": 2, "orientation_seed": 0}
-    # The pose recipe's training settings, as `snds train --se3` uses them.
-    assert description["train"]["shape_weight"] == 0.01
-    assert description["train"]["position_noise"] == 0.0
+    # The default recipe's training settings, as `snds train --se3` uses them for poses.
+    default = RECIPES["default"].train
+    assert description["train"]["shape_weight"] == default.shape_weight
+    assert description["train"]["position_noise"] == default.position_noise
     # THEN the model reproduces the row's velocity MSE on the same split of the same poses
     demos = task.source().load()
     split = split_samples(demos, test_fraction=0.2, seed=0)

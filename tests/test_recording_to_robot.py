@@ -26,20 +26,30 @@ if c_check.compiler() is None:
 from recording_files import line_poses, write_bag  # noqa: E402
 
 
-@pytest.fixture(scope="module")
-def model(tmp_path_factory):
+def _trained(folder, *options: str):
     """A pose model trained from a bag of PoseStamped on /ee_pose, with its C export."""
-    folder = tmp_path_factory.mktemp("robot")
     write_bag(folder / "rec", line_poses(80))
     mcap = next((folder / "rec").glob("*.mcap"))
     out = folder / "model"
     argv = ["--quiet", "train", "--data", str(mcap), "--topic", "/ee_pose", "--out", str(out)]
-    assert main([*argv, "--steps", "150", "--rollouts", "20", "--samples", "500"]) == 0
+    assert main([*argv, "--steps", "150", "--rollouts", "20", "--samples", "500", *options]) == 0
     code = main(
         ["--quiet", "export", str(out), "--format", "c", "--samples", "2000", "--max-speed", "0.2"]
     )
     assert code == 0
     return out
+
+
+@pytest.fixture(scope="module")
+def model(tmp_path_factory):
+    """The default: a pose model with a phase after the pose."""
+    return _trained(tmp_path_factory.mktemp("robot"))
+
+
+@pytest.fixture(scope="module")
+def plain_model(tmp_path_factory):
+    """A pose model without a phase (what snds ros drives)."""
+    return _trained(tmp_path_factory.mktemp("robot_plain"), "--phase-codes", "0")
 
 
 def test_the_compiled_controller_reaches_the_target_from_the_recordings_start(model):
@@ -52,8 +62,15 @@ def test_the_compiled_controller_reaches_the_target_from_the_recordings_start(mo
     pointer = ctypes.POINTER(ctypes.c_double)
     step.argtypes = [pointer, ctypes.c_double, ctypes.c_double, pointer, pointer]
     step.restype = ctypes.c_double
-    x = np.array(line_poses(80)[0])
-    command, reached = np.zeros(6), np.zeros(7)
+    # The recording's first pose, given its phase by the controller's own start rule
+    space = policy.space
+    assert space.phase_dim == 3
+    start = ctypes.CDLL(str(library)).snds_start_state
+    start.argtypes = [pointer, pointer]
+    pose, x = np.array(line_poses(80)[0]), np.zeros(space.dim)
+    start(pose.ctypes.data_as(pointer), x.ctypes.data_as(pointer))
+    np.testing.assert_array_equal(x[:7], pose)
+    command, reached = np.zeros(space.tangent_dim), np.zeros(space.dim)
     # WHEN a 100 Hz loop holds its command for 20 s on an ideal robot (the state it reaches
     # is the step's own next state), under the exported limit of 0.2 m/s
     peak = 0.0
@@ -71,11 +88,12 @@ def test_the_compiled_controller_reaches_the_target_from_the_recordings_start(mo
     target = policy.target
     extent = float(policy.extents()[0])
     assert np.linalg.norm(x[:3] - target[:3]) <= 0.01 * extent
-    assert geodesic_angle(x[3:], target[3:]) <= 0.05
+    assert geodesic_angle(x[3:7], target[3:7]) <= 0.05
     assert peak <= 0.2 * (1 + 1e-12)
 
 
-def test_snds_ros_drives_an_rclpy_robot_to_the_target(model):
+def test_snds_ros_drives_an_rclpy_robot_to_the_target(plain_model):
+    model = plain_model
     rclpy = pytest.importorskip("rclpy", reason="the ROS node needs the ros extra")
     from geometry_msgs.msg import PoseStamped, TwistStamped
     from rclpy.executors import SingleThreadedExecutor

@@ -48,7 +48,7 @@ def chart(generator) -> str:
 const REAL *q = x + 3;
 const REAL c[4] = {{-TARGET_ORIENTATION_SFX[0], -TARGET_ORIENTATION_SFX[1],
                     -TARGET_ORIENTATION_SFX[2], TARGET_ORIENTATION_SFX[3]}};
-REAL r[4], y[6], sign, norm, half, scale;
+REAL r[4], y[{n}], sign, norm, half, scale;
 int i;
 r[0] = q[3] * c[0] + c[3] * q[0] + (q[1] * c[2] - q[2] * c[1]);
 r[1] = q[3] * c[1] + c[3] * q[1] + (q[2] * c[0] - q[0] * c[2]);
@@ -63,7 +63,9 @@ for (i = 0; i < 3; ++i) {{
     y[i] = (x[i] - TARGET_POSITION_SFX[i]) / SCALES_SFX[i];
     y[3 + i] = (scale * r[i]) / SCALES_SFX[3 + i];
 }}
-for (i = 0; i < 6; ++i) z[i] = (y[i] - CENTER_SFX[i]) / LIT({generator.policy.length});
+/* A phase after the pose is scaled as the positions are (snds.se3.PosePolicy.chart). */
+for (i = 6; i < {n}; ++i) y[i] = x[i + 1] / SCALES_SFX[i];
+for (i = 0; i < {n}; ++i) z[i] = (y[i] - CENTER_SFX[i]) / LIT({generator.policy.length});
 }}
 """
 
@@ -79,9 +81,9 @@ def to_user(generator) -> str:
         )
     return f"""static void to_user_SFX(const REAL *z, const REAL *pi, REAL *v) {{
 /* (v, J_l(r) r'), r read back from z as the library does (snds.so3.left_jacobian). */
-REAL rates[6], r[3], hat[9], hat2[9], jac[9], theta2, theta, a, b;
+REAL rates[{n}], r[3], hat[9], hat2[9], jac[9], theta2, theta, a, b;
 int i, j, k;
-for (i = 0; i < 6; ++i) rates[i] = (pi[i] * LIT({speed})) * SCALES_SFX[i];
+for (i = 0; i < {n}; ++i) rates[i] = (pi[i] * LIT({speed})) * SCALES_SFX[i];
 for (i = 0; i < 3; ++i) r[i] = (z[3 + i] * LIT({p.length}) + CENTER_SFX[3 + i]) * SCALES_SFX[3 + i];
 theta2 = r[0] * r[0] + r[1] * r[1] + r[2] * r[2];
 theta = MATH(sqrt)(theta2);
@@ -106,6 +108,7 @@ for (i = 0; i < 3; ++i) {{
     v[i] = rates[i];
     v[3 + i] = jac[3 * i] * rates[3] + jac[3 * i + 1] * rates[4] + jac[3 * i + 2] * rates[5];
 }}
+for (i = 6; i < {n}; ++i) v[i] = rates[i];
 }}
 """
 
@@ -120,10 +123,12 @@ def advance(generator) -> str:
         )
     del t
     return """static void advance_SFX(const REAL *x, REAL h, const REAL *v, REAL *out) {
-/* p + h v and exp(h w) q, renormalised (snds.spaces.SE3.advance). */
+/* p + h v and exp(h w) q, renormalised (snds.spaces.SE3.advance); a phase after the pose
+   moves along its rate. */
 REAL rv[3], e[4], norm, scale, length;
 const REAL *q = x + 3;
 int i;
+for (i = 7; i < STATES; ++i) out[i] = x[i] + h * v[i - 1];
 for (i = 0; i < 3; ++i) { out[i] = x[i] + h * v[i]; rv[i] = h * v[3 + i]; }
 norm = MATH(sqrt)(rv[0] * rv[0] + rv[1] * rv[1] + rv[2] * rv[2]);
 scale = sinc_SFX(norm / LIT(2.0)) / LIT(2.0);
@@ -136,4 +141,4 @@ out[6] = e[3] * q[3] - (e[0] * q[0] + e[1] * q[1] + e[2] * q[2]);
 length = MATH(sqrt)(out[3] * out[3] + out[4] * out[4] + out[5] * out[5] + out[6] * out[6]);
 for (i = 3; i < 7; ++i) out[i] = out[i] / length;
 }
-"""
+""".replace("STATES", str(s))

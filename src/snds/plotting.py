@@ -438,7 +438,7 @@ def plot_all(
 
     paths = []
     positions_only = space.dim == p
-    if p == 2:
+    if positions_only or p == 2:
         paths.append(
             plot_streamlines(
                 policy, demos, out / "streamlines.png", rollouts=rollouts, perturbed=perturbed

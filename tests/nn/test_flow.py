@@ -111,10 +111,11 @@ def test_default_warp_is_four_layers_for_positions_and_none_elsewhere(spiral):
         assert policy.config.warp_layers == DEFAULT_WARP_LAYERS == 4
         assert isinstance(policy.lyapunov, WarpedLyapunov)
         assert len(policy.lyapunov.warp.layers) == 4
-    # and 1-D states, behavioural cloning and pose policies keep the convex V
+    # and 1-D states and behavioural cloning keep the convex V
     for policy in (built(1), built(2, stable=False)):
         assert policy.config.warp_layers == 0 and isinstance(policy.lyapunov, Lyapunov)
-    assert PoseConfig().warp_layers == 0
+    # pose policies take the positions' default warp (the chart is 6-D)
+    assert PoseConfig().warp_layers == DEFAULT_WARP_LAYERS
     # while an explicit number is taken as given
     assert built(2, warp_layers=0).config.warp_layers == 0
     assert built(2, stable=False, warp_layers=2).config.warp_layers == 2

@@ -289,14 +289,16 @@ class Normalization:
             raise DataError(f"{named}demonstrations never move (every velocity is zero)")
         # A float32 policy holds the scales as float32 numbers: one that rounds to 0 or inf
         # there would turn every state into NaN.
-        for what, value in (
-            ("extent", length),
-            ("top speed", speed),
-            ("time scale", length / speed),
+        # A phase scales with the positions: the state's length is theirs times a constant, so
+        # the message names the positions' own extent, the number a user knows.
+        for what, value, shown in (
+            ("extent", length, demos.extent()),
+            ("top speed", speed, speed),
+            ("time scale", length / speed, length / speed),
         ):
             if not _FLOAT32_TINY <= value <= _FLOAT32_MAX:
                 raise DataError(
-                    f"{named}the demonstrations' {what} is {value:.3g}, outside the float32 "
+                    f"{named}the demonstrations' {what} is {shown:.3g}, outside the float32 "
                     f"range [{_FLOAT32_TINY:.3g}, {_FLOAT32_MAX:.3g}]: give the data in other "
                     "units"
                 )
