@@ -31,6 +31,7 @@ import torch
 from snds.c_check import compiler, load_c
 from snds.c_export import export_c
 from snds.errors import ConfigError
+from snds.phase import StartRule, phase_step
 from snds.policy import Policy, float64_copy
 from snds.rollout import safe_velocity
 
@@ -81,26 +82,40 @@ BACKENDS = ("auto", "c", "torch")
 class Controller:
     """What the node computes each period, without ROS: the guarded, limited command.
 
+    A model with a phase (:mod:`snds.phase`) keeps it here: the first measured state gets the
+    phase of ``start_rule``, and each later one the phase advanced by the share of the last
+    command the measured positions made (:func:`snds.phase.phase_step`), so that it waits
+    while the robot is held.
+
     Arguments:
-        policy: A position model (2 or 3 numbers) or a pose model.
+        policy: A position model (2 or 3 numbers) or a pose model, with a phase or not.
         backend: A key of :data:`BACKENDS`; both compute the same step
             (:func:`snds.rollout.safe_velocity`; the C export agrees with it to rounding).
+        start_rule: How a model with a phase gives its first state a phase
+            (:func:`snds.phase.start_rule`).
     """
 
-    def __init__(self, policy: Policy, *, backend: str = "auto") -> None:
+    def __init__(
+        self, policy: Policy, *, backend: str = "auto", start_rule: StartRule | None = None
+    ) -> None:
         if backend not in BACKENDS:
             raise ConfigError(f"--backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
         space = policy.space
-        if space.phase_dim:
+        if space.phase_dim and start_rule is None:
             raise ConfigError(
-                "snds ros drives position and pose models; a model with a phase needs its "
-                "phase kept by the controller (docs/robots-and-export.md)"
+                "a model with a phase needs its start rule (snds.phase.start_rule of the "
+                "demonstrations it was trained on) to give the first state its phase"
             )
-        if space.dim == space.position_dim and space.dim not in (2, 3):
-            raise ConfigError(f"snds ros drives 2-D or 3-D positions or poses, not {space.dim}-D")
+        base = space.dim - space.phase_dim
+        if base == space.position_dim and base not in (2, 3):
+            raise ConfigError(f"snds ros drives 2-D or 3-D positions or poses, not {base}-D")
         self.policy = float64_copy(policy)
-        self.pose = space.dim != space.position_dim
-        self.dim = space.dim
+        self.pose = base != space.position_dim
+        self.dim = base
+        self.position_dim = space.position_dim
+        self.start_rule = start_rule
+        self.kept: np.ndarray | None = None
+        self.commanded: np.ndarray | None = None
         self.backend, self._step = "torch", None
         if backend != "torch":
             if compiler() is None:
@@ -108,13 +123,34 @@ class Controller:
                     raise ConfigError("--backend c needs a C compiler (gcc or cc, or set CC)")
             else:
                 self._folder = tempfile.TemporaryDirectory(prefix="snds-ros-")
-                header = export_c(policy, Path(self._folder.name) / "policy.h")
+                header = export_c(
+                    policy, Path(self._folder.name) / "policy.h", start_rule=start_rule
+                )
                 library = load_c(header, policy, Path(self._folder.name) / "policy.so")
                 self._step, self.backend = library.stepper(), "c"
 
     def command(self, state: np.ndarray, *, dt: float, max_speed: float) -> np.ndarray:
-        """The twist (6,) to hold for ``dt`` at ``state`` (space.dim,): linear velocity
-        (zero-padded to 3), then the angular velocity (zero for a position model)."""
+        """The twist (6,) to hold for ``dt`` at the measured ``state`` (a position or a pose):
+        linear velocity (zero-padded to 3), then the angular velocity (zero for a position
+        model)."""
+        state = np.asarray(state, dtype=np.float64)
+        if self.start_rule is not None:
+            if self.kept is None:
+                state = self.start_rule.start_states(state[None])[0]
+            else:
+                state = phase_step(
+                    self.kept, self.commanded, dt, state, position_dim=self.position_dim
+                )
+        v = self._velocity(state, dt, max_speed)
+        if self.start_rule is not None:
+            self.kept, self.commanded = state, v
+        twist = np.zeros(6)
+        size = 6 if self.pose else self.position_dim
+        twist[:size] = v[:size]
+        return twist
+
+    def _velocity(self, state: np.ndarray, dt: float, max_speed: float) -> np.ndarray:
+        """The guarded, limited velocity at a whole state (phase included)."""
         if self._step is not None:
             v = self._step(np.asarray(state, dtype=np.float64), dt, max_speed or 0.0)
         else:
@@ -122,12 +158,7 @@ class Controller:
             with torch.no_grad():
                 velocity, _ = safe_velocity(self.policy, x, dt, max_speed=max_speed or None)
             v = velocity[0].numpy()
-        twist = np.zeros(6)
-        if self.pose:
-            twist[:] = v
-        else:
-            twist[: len(v)] = v
-        return twist
+        return v
 
 
 @dataclass
@@ -174,9 +205,10 @@ def make_node(
     context=None,
     name: str = "snds",
     backend: str = "auto",
+    start_rule: StartRule | None = None,
 ):
     """The rclpy node of ``policy`` (rclpy must be initialised, in ``context`` if given);
-    ``backend`` as :class:`Controller`'s.
+    ``backend`` and ``start_rule`` (a model with a phase) as :class:`Controller`'s.
 
     Returns:
         The node; its ``timing`` is a :class:`Timing`, ``stop()`` publishes zero.
@@ -190,7 +222,7 @@ def make_node(
         from rclpy.node import Node
     except ImportError as error:
         raise ConfigError(f"snds ros needs rclpy: pip install 'snds[ros]' ({error})") from error
-    controller = Controller(policy, backend=backend)
+    controller = Controller(policy, backend=backend, start_rule=start_rule)
     if controller.pose and config.state_type != "PoseStamped":
         raise ConfigError("a pose model reads PoseStamped states")
 

@@ -21,7 +21,7 @@ from snds.data.options import ReadOptions
 from snds.errors import ConfigError, ModelFileError, SNDSError
 from snds.models import load_model
 from snds.obstacles import Scene, load_scene, parse_obstacle, parse_workspace
-from snds.phase import Phase
+from snds.phase import Phase, StartRule, start_rule
 from snds.plotting import plot_all, plot_obstacles
 from snds.policy import Policy, StablePolicy
 from snds.spaces import SE3
@@ -206,3 +206,13 @@ def _arrival_summary(stability: dict) -> str:
     if arrived < rollouts:
         text += f", {stability['still_moving']} still moving at {stability['horizon']:.3g} s"
     return text
+
+
+def start_rule_of(model: Path, description: dict) -> StartRule:
+    """How a new start gets its phase (:func:`snds.phase.start_rule`), from the
+    demonstrations a model with a phase was trained on (its ``model.json`` record)."""
+    recorded = description.get("data") or {}
+    if "phase" not in recorded:
+        raise SNDSError(f"{model}: a model with a phase, but model.json records no phase")
+    poses = description.get("kind") == "se3"
+    return start_rule(DataSource.from_record(recorded, poses=poses).load())

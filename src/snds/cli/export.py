@@ -9,13 +9,11 @@ import torch
 
 from snds import c_check, c_export
 from snds.cli._args import _obstacle_arguments
-from snds.cli._common import _scene
-from snds.data import DataSource
-from snds.errors import ConfigError, SNDSError
+from snds.cli._common import _scene, start_rule_of
+from snds.errors import ConfigError
 from snds.io import to_jsonable, write_json
 from snds.models import load_model
 from snds.obstacles import ModulatedPolicy
-from snds.phase import StartRule, start_rule
 from snds.policy import Policy
 from snds.spaces import SE3
 
@@ -85,7 +83,7 @@ def run(args: argparse.Namespace) -> int:
     extra = {}
     if args.format == "onnx" and policy.space.phase_dim:
         # A controller of a model with a phase takes a new start's phase from these.
-        extra["start_rule"] = _start_rule(args.model, description)
+        extra["start_rule"] = start_rule_of(args.model, description)
     path = export.FORMATS[args.format](policy, out, dtype=dtype, **extra)
     check = export.verify(path, policy, samples=args.samples, seed=args.seed)
     _report(path, [check], policy, quiet=args.quiet)
@@ -97,7 +95,7 @@ def _run_c(args: argparse.Namespace, policy: Policy, description: dict) -> int:
     options = {"max_speed": args.max_speed}
     if policy.space.phase_dim:
         # A controller of a model with a phase takes a new start's phase from these.
-        options["start_rule"] = _start_rule(args.model, description)
+        options["start_rule"] = start_rule_of(args.model, description)
     if args.rate is not None:
         options["rate"] = args.rate
     path = c_export.export_c(policy, out, **options)
@@ -133,16 +131,6 @@ def _report(path: Path, checks: list, policy: Policy, *, quiet: bool, also=()) -
         print(f"{path}: {export.signature(policy).description}")
         for check in checks:
             print(f"  {check.summary()}")
-
-
-def _start_rule(model: Path, description: dict) -> StartRule:
-    """How a new start gets its phase (:func:`snds.phase.start_rule`), from the
-    demonstrations a model with a phase was trained on."""
-    recorded = description.get("data") or {}
-    if "phase" not in recorded:
-        raise SNDSError(f"{model}: a model with a phase, but model.json records no phase")
-    poses = description.get("kind") == "se3"
-    return start_rule(DataSource.from_record(recorded, poses=poses).load())
 
 
 def _with_obstacles(policy: Policy, scene) -> Policy:

@@ -7,6 +7,7 @@ import json
 import time
 from pathlib import Path
 
+from snds.cli._common import start_rule_of
 from snds.models import load_model
 from snds.ros import BACKENDS, NodeConfig, make_node
 
@@ -64,11 +65,12 @@ def run(args: argparse.Namespace) -> int:
         state_type=args.state_type,
         frame_id=args.frame_id,
     )
-    policy, _ = load_model(args.model)
+    policy, description = load_model(args.model)
+    rule = start_rule_of(args.model, description) if policy.space.phase_dim else None
     import rclpy
 
     rclpy.init()
-    node = make_node(policy, config, backend=args.backend)
+    node = make_node(policy, config, backend=args.backend, start_rule=rule)
     end = None if args.duration is None else time.monotonic() + args.duration
     try:
         while rclpy.ok() and (end is None or time.monotonic() < end):
