@@ -31,6 +31,35 @@ from snds.app.headless import available, launch  # noqa: E402
 #: defaults, as for the README's pictures).
 QUERY = os.environ.get("SNDS_APP_QUERY", "steps=300&rollouts=10&samples=200")
 
+#: Whether the canvas is painted dark 3.5 px beside each stroke's first and middle point, across
+#: the stroke: by its start dot there; not in the middle, between its arrowheads.
+STROKE_ENDS = """() => {
+  const canvas = document.getElementById("canvas");
+  const ratio = canvas.width / canvas.getBoundingClientRect().width;
+  const ctx = canvas.getContext("2d");
+  const beside = (a, b) => {
+    const [ax, ay] = sndsApp.toPixels(a), [bx, by] = sndsApp.toPixels(b);
+    const length = Math.hypot(bx - ax, by - ay) || 1;
+    const x = ax - 3.5 * (by - ay) / length, y = ay + 3.5 * (bx - ax) / length;
+    const pixel = ctx.getImageData(Math.round(x * ratio), Math.round(y * ratio), 1, 1);
+    const [r, g, bl, alpha] = pixel.data;
+    return alpha > 128 && r + g + bl < 350;
+  };
+  return sndsApp.strokes.map((s) => {
+    const gap = (j, k) => {
+      const [a, b] = [sndsApp.toPixels(s[j]), sndsApp.toPixels(s[k])];
+      return Math.hypot(a[0] - b[0], a[1] - b[1]);
+    };
+    const far = (k) => {
+      let j = k;
+      while (j + 1 < s.length && gap(j, k) < 12) j += 1;
+      return j;
+    };
+    const mid = Math.floor(s.length / 2);
+    return [beside(s[0], s[far(0)]), beside(s[mid], s[far(mid)])];
+  });
+}"""
+
 pytestmark = pytest.mark.skipif(
     not available(),
     reason="no Chromium installed (apt-get install chromium): the page's browser test needs it",
@@ -100,6 +129,10 @@ def test_draw_train_push_and_compare_with_bc(page, shots: Path, helpers) -> None
         page.mouse.up()
     assert page.evaluate("sndsApp.strokes.length") == 3
     assert page.evaluate("sndsApp.strokes.every(s => s.length > 30)")
+    # Each stroke shows its direction: a dot at its start (a dark pixel beside the line, where
+    # the line alone leaves none, as in its middle).
+    beside = page.evaluate(STROKE_ENDS)
+    assert beside == [[True, False]] * 3, beside
     page.screenshot(path=str(shots / "app_strokes.png"))
     place = "(({x, y, width}) => ({x, y, width}))(document.querySelector('aside')"
     place += ".getBoundingClientRect())"
