@@ -54,6 +54,10 @@ from snds.stability import CheckConfig, check_stability
 HERE = Path(__file__).resolve().parent
 DATA = HERE.parent.parent / "shared" / "data"
 
+#: What the RoboTasks9 files need (../shared/data/README.md): no time stamps (60 Hz), the
+#: quaternion scalar first, centimetres.
+CLFD = ["--rate", "60", "--quaternion-order", "wxyz", "--length-unit", "cm"]
+
 #: Each task: its data file (relative to ../shared/data, or a drawn shape) and the options
 #: its file needs.
 TASKS: dict[str, list[str]] = {
@@ -63,24 +67,8 @@ TASKS: dict[str, list[str]] = {
     "3D-pick-box_0-2": ["3D-pick-box.mat", "--demos", "0,2"],
     "3D-pick-box_1-3": ["3D-pick-box.mat", "--demos", "1,3"],
     "3D_sink": ["3D_sink.mat"],
-    "pouring": [
-        "clfd/pouring.npy",
-        "--rate",
-        "60",
-        "--quaternion-order",
-        "wxyz",
-        "--length-unit",
-        "cm",
-    ],
-    "bottle2shelf": [
-        "clfd/bottle2shelf.npy",
-        "--rate",
-        "60",
-        "--quaternion-order",
-        "wxyz",
-        "--length-unit",
-        "cm",
-    ],
+    "pouring": ["clfd/pouring.npy", *CLFD],
+    "bottle2shelf": ["clfd/bottle2shelf.npy", *CLFD],
     "panda_pose": ["panda_kinesthetic_pose.mat", "--quaternion-order", "wxyz"],
     **{f"drawn_{name}": [f"drawn:{name}"] for name in SHAPES},
 }
