@@ -19,6 +19,7 @@ from snds.models import load_model, save_model
 from snds.phase import (
     START_REFERENCES,
     Phase,
+    PhaseKeeper,
     phase_step,
     start_rule,
     start_state,
@@ -165,6 +166,24 @@ def test_a_phased_pose_moves_on_so3_and_compares_the_pose_only():
     np.testing.assert_allclose(np.linalg.norm(states[:, 3:7], axis=1), 1.0)
 
 
+def test_a_phase_keeper_starts_by_the_rule_and_waits_while_held(phased):
+    # GIVEN a keeper with the demonstrations' start rule, and a measured position on the data
+    keeper = PhaseKeeper(position_dim=2, start_rule=start_rule(phased))
+    measured = phased[0].states[100, :2]
+    # WHEN it takes its first state, a command, and the same position again (held)
+    first = keeper.step(measured, 0.1)
+    np.testing.assert_array_equal(first, start_state(phased, measured))
+    keeper.command(np.array([1.0, 0.0, -2.0, 0.5, 0.0]))
+    held = keeper.step(measured, 0.1)
+    # THEN the phase waited; unhindered, it moves by the commanded rate
+    np.testing.assert_array_equal(held, first)
+    moved = keeper.step(measured + np.array([0.1, 0.0]), 0.1)
+    np.testing.assert_allclose(moved[2:], first[2:] + 0.1 * np.array([-2.0, 0.5, 0.0]))
+    # AND without a start or a rule there is no first state
+    with pytest.raises(ConfigError, match="start"):
+        PhaseKeeper(position_dim=2).step(measured, 0.1)
+
+
 def test_phase_step_is_euler_unhindered_and_waits_when_held():
     state, velocity, h = np.array([1.0, 2.0, 3.0, -1.0]), np.array([2.0, 0.0, -4.0, 1.0]), 0.1
     euler = state + h * velocity
@@ -296,17 +315,17 @@ def test_the_simulated_arm_keeps_the_phase_and_it_waits_while_held(trained, phas
     start = phased[0].states[0]
     position, _ = commander.start_pose(start)
     commander.twist(EndEffector(position, rest))
-    first = commander.state.copy()
+    first = commander.keeper.state.copy()
     np.testing.assert_allclose(first, start, atol=1e-9)
     # Held: the same measured position again, the phase does not move.
     commander.twist(EndEffector(position, rest))
-    np.testing.assert_allclose(commander.state[2:], first[2:], atol=1e-12)
+    np.testing.assert_allclose(commander.keeper.state[2:], first[2:], atol=1e-12)
     # Moved as commanded: the phase moves by its own commanded step.
-    velocity = commander.commanded
+    velocity = commander.keeper.commanded
     dt = 1.0 / commander.config.control_rate
     moved = commander.placement.to_world(first[:2] + dt * velocity[:2])
     commander.twist(EndEffector(moved, rest))
-    np.testing.assert_allclose(commander.state[2:], first[2:] + dt * velocity[2:], rtol=1e-6)
+    np.testing.assert_allclose(commander.keeper.state[2:], first[2:] + dt * velocity[2:], rtol=1e-6)
     with pytest.raises(snds.errors.SNDSError, match="shape"):
         commander.start_pose(start[:2])
 

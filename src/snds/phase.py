@@ -38,6 +38,7 @@ __all__ = [
     "START_REACH",
     "START_REFERENCES",
     "Phase",
+    "PhaseKeeper",
     "StartRule",
     "phase_step",
     "start_rule",
@@ -229,3 +230,53 @@ def phase_step(
     share = np.where(size > 0, np.clip(ratio, 0.0, 1.0), 1.0)
     phase = state[..., b:] + share[..., None] * commanded[..., commanded.shape[-1] - m :]
     return np.concatenate([measured, phase], -1)
+
+
+class PhaseKeeper:
+    """The phase a controller keeps for a model with a phase, from the measured base states
+    (positions, or poses) a robot reports each period.
+
+    The first state is the one :meth:`start` gave, with the measured base state; without one,
+    the start rule's (:class:`StartRule`). Each later one is :func:`phase_step`'s: the measured
+    base state, the phase advanced by the share of the last command the positions made, so that
+    it waits while the robot is held.
+
+    Arguments:
+        position_dim: How many leading numbers of a state are its position.
+        start_rule: How a first state without :meth:`start` gets its phase (None: it needs one).
+    """
+
+    def __init__(self, *, position_dim: int, start_rule: StartRule | None = None) -> None:
+        self.position_dim = position_dim
+        self.start_rule = start_rule
+        self.state: np.ndarray | None = None
+        self.commanded: np.ndarray | None = None
+
+    def start(self, state: np.ndarray) -> None:
+        """Starts from a whole state (base state, then phase)."""
+        self.state, self.commanded = np.array(state, dtype=np.float64), None
+
+    def step(self, measured: np.ndarray, dt: float) -> np.ndarray:
+        """The whole state at a measured base state, ``dt`` seconds after the last command
+        (:meth:`command` records it), shape (b + m,).
+
+        Raises:
+            ConfigError: For a first state with neither :meth:`start` nor a start rule.
+        """
+        measured = np.asarray(measured, dtype=np.float64)
+        if self.state is None:
+            if self.start_rule is None:
+                raise ConfigError("a model with a phase needs a start state or a start rule")
+            state = self.start_rule.start_states(measured[None])[0]
+        elif self.commanded is None:
+            state = np.concatenate([measured, self.state[len(measured) :]])
+        else:
+            state = phase_step(
+                self.state, self.commanded, dt, measured, position_dim=self.position_dim
+            )
+        self.state = state
+        return state
+
+    def command(self, velocity: np.ndarray) -> None:
+        """Records the velocity commanded at the last :meth:`step`'s state."""
+        self.commanded = np.asarray(velocity, dtype=np.float64)

@@ -31,7 +31,7 @@ import torch
 from snds.c_check import compiler, load_c
 from snds.c_export import export_c
 from snds.errors import ConfigError
-from snds.phase import StartRule, phase_step
+from snds.phase import PhaseKeeper, StartRule
 from snds.policy import Policy, float64_copy
 from snds.rollout import safe_velocity
 
@@ -113,9 +113,11 @@ class Controller:
         self.pose = base != space.position_dim
         self.dim = base
         self.position_dim = space.position_dim
-        self.start_rule = start_rule
-        self.kept: np.ndarray | None = None
-        self.commanded: np.ndarray | None = None
+        self.keeper = (
+            PhaseKeeper(position_dim=space.position_dim, start_rule=start_rule)
+            if space.phase_dim
+            else None
+        )
         self.backend, self._step = "torch", None
         if backend != "torch":
             if compiler() is None:
@@ -134,16 +136,11 @@ class Controller:
         linear velocity (zero-padded to 3), then the angular velocity (zero for a position
         model)."""
         state = np.asarray(state, dtype=np.float64)
-        if self.start_rule is not None:
-            if self.kept is None:
-                state = self.start_rule.start_states(state[None])[0]
-            else:
-                state = phase_step(
-                    self.kept, self.commanded, dt, state, position_dim=self.position_dim
-                )
+        if self.keeper is not None:
+            state = self.keeper.step(state, dt)
         v = self._velocity(state, dt, max_speed)
-        if self.start_rule is not None:
-            self.kept, self.commanded = state, v
+        if self.keeper is not None:
+            self.keeper.command(v)
         twist = np.zeros(6)
         size = 6 if self.pose else self.position_dim
         twist[:size] = v[:size]

@@ -35,7 +35,7 @@ from scipy.spatial.transform import Rotation
 
 from snds.arrival import PATH_TOLERANCE, distance_to_path, recovery_time
 from snds.obstacles import Scene, avoid_step, modulate_twist, step_fraction
-from snds.phase import phase_step
+from snds.phase import PhaseKeeper
 from snds.policy import Policy, float64_copy
 from snds.rollout import policy_guard, safe_velocity
 from snds.se3 import PosePolicy
@@ -367,8 +367,7 @@ class PhasedCommander(PositionCommander):
             raise SimulationError("obstacles cannot be simulated with a model that has a phase")
         super().__init__(policy, placement, hold, config)
         self.position_dim = policy.space.position_dim
-        self.state: np.ndarray | None = None
-        self.commanded: np.ndarray | None = None
+        self.keeper = PhaseKeeper(position_dim=self.position_dim)
 
     @classmethod
     def build(
@@ -388,23 +387,17 @@ class PhasedCommander(PositionCommander):
                 f"the start has shape {start.shape}, the model's states (position and phase) "
                 f"{self.policy.target.shape}"
             )
-        self.state, self.commanded = start.copy(), None
+        self.keeper.start(start)
         return self.placement.to_world(start[: self.position_dim]), self.goal_orientation
 
     def twist(self, pose: EndEffector) -> np.ndarray:
         """The policy's velocity at the measured position and the kept phase."""
-        if self.state is None:
+        if self.keeper.state is None:
             raise SimulationError("a phased run needs its start (start_pose) before a twist")
         measured = self.placement.to_task(pose.position)
-        if self.commanded is None:
-            state = np.concatenate([measured, self.state[self.position_dim :]])
-        else:
-            dt = 1.0 / self.config.control_rate
-            state = phase_step(
-                self.state, self.commanded, dt, measured, position_dim=self.position_dim
-            )
+        state = self.keeper.step(measured, 1.0 / self.config.control_rate)
         velocity = self._velocity(state)
-        self.state, self.commanded = state, velocity
+        self.keeper.command(velocity)
         return self._world_twist(pose, velocity[: self.position_dim])
 
 
@@ -499,8 +492,7 @@ class PhasedPoseCommander(PoseCommander):
         if config.obstacles is not None:
             raise SimulationError("obstacles cannot be simulated with a model that has a phase")
         super().__init__(policy, placement, config)
-        self.state: np.ndarray | None = None
-        self.commanded: np.ndarray | None = None
+        self.keeper = PhaseKeeper(position_dim=3)
 
     def start_pose(self, start: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The world pose of a start state (7 + m,); its phase starts the commander's."""
@@ -511,24 +503,19 @@ class PhasedPoseCommander(PoseCommander):
                 f"{self.policy.target.shape}"
             )
         pose = super().start_pose(start[:7])
-        self.state, self.commanded = start.copy(), None
+        self.keeper.start(start)
         return pose
 
     def twist(self, pose: EndEffector) -> np.ndarray:
         """The policy's twist at the measured pose and the kept phase, in the world."""
-        if self.state is None:
+        if self.keeper.state is None:
             raise SimulationError("a phased run needs its start (start_pose) before a twist")
         position, orientation = self.pose_placement.to_task(pose.position, pose.orientation)
-        measured = np.concatenate([position, orientation])
-        if self.commanded is None:
-            state = np.concatenate([measured, self.state[7:]])
-        else:
-            dt = 1.0 / self.config.control_rate
-            state = phase_step(self.state, self.commanded, dt, measured, position_dim=3)
+        dt = 1.0 / self.config.control_rate
+        state = self.keeper.step(np.concatenate([position, orientation]), dt)
         with torch.no_grad():
-            x = torch.as_tensor(state)[None]
-            twist = safe_velocity(self.policy, x, 1.0 / self.config.control_rate)[0][0].numpy()
-        self.state, self.commanded = state, twist
+            twist = safe_velocity(self.policy, torch.as_tensor(state)[None], dt)[0][0].numpy()
+        self.keeper.command(twist)
         return self.pose_placement.twist_to_world(twist[:6])
 
 
