@@ -72,7 +72,7 @@ from snds.errors import SNDSError
 from snds.evaluate import reproduce
 from snds.io import to_jsonable
 from snds.models import load_model
-from snds.phase import Phase, start_states
+from snds.phase import Phase, start_rule
 from snds.policy import PolicyConfig, StablePolicy, float64_copy
 from snds.rollout import guarded_step, policy_guard
 
@@ -255,6 +255,8 @@ def _load_results(job: Job) -> None:
     job.extra.update(
         policy=policy64,
         demos=demos,
+        # How a click gets its phase, built once for every field and rollout of the job.
+        start_rule=start_rule(demos) if demos.phase_dim else None,
         result={
             "stable": policy64.stable,
             "target": demos.target[:2],
@@ -297,9 +299,9 @@ def _grid(body: dict, limits: Limits) -> tuple[np.ndarray, np.ndarray]:
 
 def _states(job: Job, points: np.ndarray) -> np.ndarray:
     """The states a start at each point (B, 2) takes: the point, with a model's phase the
-    phase a new start there gets (:func:`snds.phase.start_states`)."""
-    demos = job.extra["demos"]
-    return start_states(demos, points) if demos.phase_dim else points
+    phase a new start there gets (:func:`snds.phase.start_rule`)."""
+    rule = job.extra["start_rule"]
+    return points if rule is None else rule.start_states(points)
 
 
 @torch.no_grad()
@@ -358,7 +360,7 @@ def rollout_from(
     """A rollout of a job's policy: the guarded step for a stable policy, else plain Euler.
 
     A model with a phase starts with ``phase``, or, without one, with the phase a new start
-    gets (:func:`snds.phase.start_states`); each push displaces the position at its time and
+    gets (:func:`snds.phase.start_rule`); each push displaces the position at its time and
     the phase keeps its value. The rollout ends at ``duration`` (or after
     ``max_steps`` steps), or when the state is within the stability check's tolerance of the
     target with no push left.
