@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import copy
 import json
+import subprocess
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,7 +19,7 @@ from snds.data import Demonstration, Demonstrations
 from snds.data.demonstrations import no_split
 from snds.data.poses import with_synthetic_orientations
 from snds.models import save_model
-from snds.phase import Phase
+from snds.phase import Phase, start_rule
 from snds.rollout import policy_guard, safe_velocity
 from snds.se3 import make_pose_policy
 
@@ -283,3 +285,49 @@ def test_a_phase_model_gives_a_new_start_its_phase_as_the_library(models, tmp_pa
     assert 0 < phased < len(positions)
     with pytest.raises(c_export.CExportError, match="phase"):
         c_export.export_c(models["positions"], tmp_path / "p.h", start_rule=rule)
+
+
+@pytest.mark.parametrize("name", ["phase", "pose"])
+def test_the_example_control_loop_compiles_runs_and_arrives(tmp_path, name):
+    # GIVEN examples/c/control_loop.c built against the export of a model of motions lasting
+    # 0.5 s (a phase model takes its start state from snds_start_state; a pose model's step
+    # advances the quaternion)
+    base = _shifted(3 if name == "pose" else 2, 1.0, [0.0] * (3 if name == "pose" else 2))
+    fast = Demonstrations(
+        tuple(Demonstration(d.positions, d.velocities * 32, d.times / 32) for d in base),
+        base.target,
+        "fast",
+    )
+    if name == "pose":
+        demos = with_synthetic_orientations(fast, target_orientation=(0.0, 0.6, 0.0, 0.8))
+        policy = _train(make_pose_policy(demos, config=SMALL, seed=0), demos, align_weight=0.0)
+        rule = None
+    else:
+        demos = Phase(codes=3).apply(fast)
+        policy = _train(snds.make_policy(demos, config=SMALL), demos)
+        rule = start_rule(demos)
+    header = c_export.export_c(policy, tmp_path / "policy.h", rate=1000.0, start_rule=rule)
+    example = Path(__file__).resolve().parents[1] / "examples" / "c" / "control_loop.c"
+    binary = tmp_path / "loop"
+    subprocess.run(
+        [
+            c_check.compiler(),
+            *c_check.CFLAGS,
+            f"-I{tmp_path}",
+            str(example),
+            str(header.with_suffix(".c")),
+            "-lm",
+            "-o",
+            str(binary),
+        ],
+        check=True,
+        capture_output=True,
+        text=True,
+    )
+    # WHEN it runs for 3 s at 1 kHz
+    result = subprocess.run([str(binary), "3", "1000"], check=True, capture_output=True, text=True)
+    report = json.loads(result.stdout)
+    # THEN it reports its periods, and every run from 3 extents away arrived
+    assert report["periods"] == 3000
+    assert report["runs"] >= 1 and report["arrived"] == report["runs"], report
+    assert 0 < report["median_arrival_s"] < 3
