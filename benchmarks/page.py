@@ -15,21 +15,18 @@ are ``snds train``'s. Measured:
 * CPU seconds beside wall seconds: the worker's (reported by it), the server process's
   (``/proc``).
 
-    python benchmarks/app.py      # a few minutes; table into benchmarks/README.md
+    python benchmarks/page.py      # a few minutes; table into benchmarks/README.md
 
 Without Chromium the time to the field is measured through the API as the page makes its
 requests (train, stream until the model is saved, the field), without drawing. Writes
-``benchmarks/results/app.json`` and (without ``--no-readme``) the ``app`` block of
+``benchmarks/results/page.json`` and (without ``--no-readme``) the ``page`` block of
 ``benchmarks/README.md``.
 """
 
 from __future__ import annotations
 
-import argparse
-import datetime
 import json
 import os
-import platform
 import socket
 import subprocess
 import sys
@@ -39,14 +36,13 @@ import urllib.request
 from pathlib import Path
 
 import numpy as np
-from _readme import write_readme_section
+from _runner import RESULTS, machine, machine_line, parser, write_readme_section
 
 from snds.app.headless import available, launch
 from snds.app.strokes import csv_text, parse_strokes
 from snds.data import load_lasa
 from snds.io import write_json
 
-HERE = Path(__file__).resolve().parent
 FIELD = {"bounds": [-100.0, 100.0, -75.0, 75.0], "size": [72, 54]}
 # Records the gaps between animation frames on the page, to see whether it stays fluid.
 FRAME_GAPS = """() => {
@@ -227,10 +223,9 @@ def _requests(
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--no-readme", action="store_true", help="do not touch the README")
-    parser.add_argument("--no-browser", action="store_true", help="measure through the API")
-    args = parser.parse_args()
+    options = parser(__doc__, threads=False)
+    options.add_argument("--no-browser", action="store_true", help="measure through the API")
+    args = options.parse_args()
     strokes = _strokes()
     server = Server()
     try:
@@ -253,8 +248,7 @@ def main() -> None:
     status = first["status"]
     stability = status["metrics"]["stability"]
     record = {
-        "date": datetime.date.today().isoformat(),
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform()},
+        **machine(),
         "strokes": "LASA Sine demonstrations 0-2, every 5th sample: 3 x 200 points",
         "settings": "snds train's defaults (the page's)",
         **{k: v for k, v in first.items() if k != "status"},
@@ -269,17 +263,17 @@ def main() -> None:
         "idle": {k: _summary(v) for k, v in idle.items()},
         "while_training": {k: _summary(v) for k, v in busy.items()},
     }
-    write_json(HERE / "results" / "app.json", record)
+    write_json(RESULTS / "page.json", record)
     print(json.dumps(record, indent=2))
     if not args.no_readme:
-        write_readme_section("app", _table(record))
+        write_readme_section("page", _table(record))
 
 
 def _table(r: dict) -> str:
     idle, busy = r["idle"], r["while_training"]
     rows = [
-        f"*{r['date']}, {r['strokes']}, {r['settings']} ({r['train_steps']} steps), measured "
-        f"{r['via']}, `python benchmarks/app.py`.*",
+        f"{machine_line(r)} {r['strokes']}, {r['settings']} ({r['train_steps']} steps), "
+        f"measured {r['via']}, `python benchmarks/page.py`.",
         "",
         "| from the click on Train | wall s | worker CPU s |",
         "|---|---|---|",
