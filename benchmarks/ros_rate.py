@@ -91,7 +91,8 @@ def main() -> None:
 
 def table(s: dict) -> str:
     """The README block: achieved rate, jitter and overruns."""
-    where = machine_line(s) if "cpu" in s else f"Measured {s['date']} on {s['processor']}."
+    load = f", load average {s['load_average'][0]:.1f}" if "load_average" in s else ""
+    where = machine_line(s) if "cpu" in s else f"Measured {s['date']} on {s['processor']}{load}."
     return (
         f"{where} `python benchmarks/ros_rate.py --model {s['model']} --rate "
         f"{s['requested_rate']:g} --seconds {s['wall_s']:.0f}`.\n\n"

@@ -13,11 +13,11 @@ Runs go to ``runs/sweeps/<name>/`` (models included); each sweep's ``results.csv
 ``results.jsonl``, ``sweep.json``, ``summary.md`` and figures are copied to
 ``benchmarks/results/sweeps/<name>/``. The README gets, per sweep, SNDS against the best
 published baseline (SDS-EF, LPV-DS, SEDS) per motion, BC beside them as the unconstrained
-control (block ``snds-vs-baselines[-demos1|-multi]``), and the sweeps' wall time on N Dask
-workers (block ``cluster-scaling``). ``--tables`` rebuilds those blocks from the committed
-results without running anything. A sweep whose ``runs/`` folder is gone (a fresh clone,
-another machine) starts from the committed ``results.jsonl``: its finished rows are not run
-again, though their models are not there for the streamline figure.
+control (block ``snds-vs-baselines`` for paper8; the other sweeps' go to the top of their
+``summary.md``). ``--tables`` rebuilds those from the committed results without running
+anything, and prints the sweeps' wall time on N Dask workers. A sweep whose ``runs/`` folder
+is gone (a fresh clone, another machine) starts from the committed ``results.jsonl``: its
+finished rows are not run again, though their models are not there for the figures.
 
 A sweep's rows come from one commit: ``provenance.json`` beside them records it (with its
 ``src/`` tree, the wall time and where the runs ran), and resuming with another ``src/``, or
@@ -71,12 +71,8 @@ SWEEPS: dict[str, tuple[str, int | None]] = {
     "paper8-demos1": ("paper8", 1),
     "multi": ("multi", None),
 }
-#: name -> the README block of its comparison with the baselines
-BLOCKS = {
-    "paper8": "snds-vs-baselines",
-    "paper8-demos1": "snds-vs-baselines-demos1",
-    "multi": "snds-vs-baselines-multi",
-}
+#: name -> the README block of its comparison with the baselines (the others: in its summary)
+BLOCKS = {"paper8": "snds-vs-baselines"}
 PROVENANCE = "provenance.json"
 TASKS = "tasks.jsonl"
 #: What a sweep keeps under results/sweeps/<name>/ (the figures stay in runs/).
@@ -298,6 +294,15 @@ def comparison_table(records: list[dict], name: str) -> str:
     return "\n".join(lines)
 
 
+def _with_comparison(summary: Path, body: str) -> None:
+    """Puts the comparison with the baselines at the top of a sweep's ``summary.md``."""
+    if not summary.exists():
+        return
+    marker = "<!-- against-baselines -->"
+    text = summary.read_text().split(marker)[-1].lstrip()
+    summary.write_text(f"{body}\n\n{marker}\n\n{text}")
+
+
 def task_stream(scheduler: str) -> list[dict]:
     """The finished tasks the scheduler remembers: key, worker, start and stop (epoch s).
 
@@ -400,15 +405,14 @@ def tables(names: list[str], *, readme: bool) -> None:
         records = compare(_rows(folder / "results.jsonl"))
         body = comparison_table(records, name)
         print(body)
-        if readme:
+        if name not in BLOCKS:
+            _with_comparison(folder / "summary.md", body)
+        elif readme:
             write_readme_section(BLOCKS[name], body)
         if (folder / TASKS).exists():
             timed[name] = scaling(_rows(folder / TASKS))
-    if timed:
-        body = scaling_table(timed)
-        print(body)
-        if readme:
-            write_readme_section("cluster-scaling", body)
+    if timed:  # printed only: the README quotes it in a sentence
+        print(scaling_table(timed))
 
 
 def main() -> None:
