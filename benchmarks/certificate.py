@@ -22,9 +22,7 @@ Writes ``benchmarks/results/certificate.json`` and the ``certificate`` block of
 
 from __future__ import annotations
 
-import argparse
 import json
-import resource
 import subprocess
 import sys
 import time
@@ -32,7 +30,15 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from _readme import cpu_name, write_readme_section
+from _runner import (
+    RESULTS,
+    children_cpu,
+    machine,
+    machine_line,
+    parser,
+    set_threads,
+    write_readme_section,
+)
 
 from snds.certify.bounds import cell_bounds
 from snds.certify.certificate import VerifyConfig, certify
@@ -40,7 +46,6 @@ from snds.certify.model import PolicyModel
 from snds.certify.search import deployed_step
 from snds.models import load_model
 
-HERE = Path(__file__).resolve().parent
 MOTIONS = ("Sine", "PShape", "Worm", "GShape", "NShape", "DoubleBendedLine", "CShape", "Angle")
 
 
@@ -50,15 +55,11 @@ def train(name: str, runs: Path, data: str | None) -> tuple[Path, float]:
     if (out / "model.json").is_file():
         return out, float("nan")
     source = ["--data", data] if data else ["--motion", name]
-    before = _children_cpu()
+    before = children_cpu()
+    # Position policies (no phase in the state): what the certificate covers first.
     command = [sys.executable, "-m", "snds", "--threads", "1", "--quiet", "train", *source]
-    subprocess.run([*command, "--seed", "0", "--out", str(out)], check=True)
-    return out, _children_cpu() - before
-
-
-def _children_cpu() -> float:
-    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return usage.ru_utime + usage.ru_stime
+    subprocess.run([*command, "--phase-codes", "0", "--seed", "0", "--out", str(out)], check=True)
+    return out, children_cpu() - before
 
 
 def sample(policy, dt: float, *, cells: int, side: float, box: float, seed: int) -> dict:
@@ -114,19 +115,18 @@ def float32_near_target(policy, dt: float, *, count: int, seed: int) -> dict:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--motions", nargs="*", default=list(MOTIONS))
-    parser.add_argument("--data", action="append", default=[], help="a real file (repeatable)")
-    parser.add_argument("--runs", type=Path, default=Path("runs/certificate"))
-    parser.add_argument("--cells", type=int, default=2000)
-    parser.add_argument("--side", type=float, default=6 / 2**9, help="cell side, extents")
-    parser.add_argument("--box", type=float, default=3.0)
-    parser.add_argument("--full", nargs="*", default=[], help="names to search in full")
-    parser.add_argument("--budget", type=int, default=400_000)
-    parser.add_argument("--float32", type=int, default=20_000)
-    parser.add_argument("--no-readme", action="store_true")
-    args = parser.parse_args()
-    torch.set_num_threads(1)
+    options = parser(__doc__)
+    options.add_argument("--motions", nargs="*", default=list(MOTIONS))
+    options.add_argument("--data", action="append", default=[], help="a real file (repeatable)")
+    options.add_argument("--runs", type=Path, default=Path("runs/certificate"))
+    options.add_argument("--cells", type=int, default=2000)
+    options.add_argument("--side", type=float, default=6 / 2**9, help="cell side, extents")
+    options.add_argument("--box", type=float, default=3.0)
+    options.add_argument("--full", nargs="*", default=[], help="names to search in full")
+    options.add_argument("--budget", type=int, default=400_000)
+    options.add_argument("--float32", type=int, default=20_000)
+    args = options.parse_args()
+    set_threads(args.threads)
     tasks = [(m, None) for m in args.motions] + [(Path(d).stem, d) for d in args.data]
     results = []
     for name, data in tasks:
@@ -164,8 +164,8 @@ def main() -> None:
             row["full"]["open_cells"] = len(certificate["open"])
         results.append(row)
         print(json.dumps(row), flush=True)
-    out = HERE / "results" / "certificate.json"
-    record = {"cpu": cpu_name(), "threads": 1, "box": args.box, "results": results}
+    out = RESULTS / "certificate.json"
+    record = {**machine(threads=args.threads), "box": args.box, "results": results}
     out.write_text(json.dumps(record, indent=1))
     if not args.no_readme:
         write_readme_section("certificate", table(record))
@@ -174,8 +174,9 @@ def main() -> None:
 def table(record: dict) -> str:
     """The README block."""
     lines = [
-        f"`python benchmarks/certificate.py` on {record['cpu']}, one thread, a machine shared by "
-        "5 engineers (CPU seconds are the comparable figure). Sample: "
+        f"{machine_line(record) if 'date' in record else 'On ' + record['cpu'] + '.'} "
+        "`python benchmarks/certificate.py`; CPU seconds are the comparable figure on a shared "
+        "machine. Sample: "
         f"{record['results'][0]['sample']['cells']} random cells of side "
         f"{record['results'][0]['sample']['side_extents']:.4g} extents in the "
         f"{record['box']:g}x box, bounded at the data's step.",

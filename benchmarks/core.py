@@ -7,9 +7,13 @@ extent), then times the pictures ``snds train --plot`` writes (``snds.plotting.p
 into a temporary folder). Each run has one torch thread; ``--jobs`` runs run side by side in worker
 processes (default: all cores; ``--jobs 1`` runs them one after the other in this process).
 
-    python benchmarks/core.py                       # 8 motions x 3 seeds, table into README
-    python benchmarks/core.py --motions Sine --seeds 1 --set window=0 --tag no-window
+    python benchmarks/core.py --jobs 1              # 8 motions x 3 seeds, table into README
+    python benchmarks/core.py --motions Sine --seeds 1 --quick --set window=0 --tag no-window
     python benchmarks/core.py --summarise benchmarks/results/core.json   # table from a file
+
+The policy is the paper's first-order x' = f(x) (no phase in the state), as ``snds
+benchmark`` compares it with the baselines; ``--set KEY=VALUE`` replaces a field of
+``PolicyConfig`` or ``TrainConfig``.
 
 Writes ``benchmarks/results/core[-TAG].json`` and ``.csv``, and (without ``--no-readme``)
 the table between the ``core`` markers of ``benchmarks/README.md``.
@@ -17,18 +21,20 @@ the table between the ``core`` markers of ``benchmarks/README.md``.
 
 from __future__ import annotations
 
-import argparse
-import csv
-import datetime
 import json
-import os
-import platform
 import tempfile
 import time
 from pathlib import Path
 
-from _overrides import parse_pairs, split_overrides
-from _readme import write_readme_section
+from _runner import (
+    machine,
+    machine_line,
+    parse_pairs,
+    parser,
+    split_overrides,
+    write_readme_section,
+    write_results,
+)
 
 from snds.benchmark import MOTION_GROUPS, PAPER_SNDS_MSE
 from snds.parallel import starmap_unordered
@@ -47,14 +53,15 @@ DTW_BEFORE = {
     "CShape": 1.98,
     "Angle": 1.36,
 }
-HERE = Path(__file__).resolve().parent
 
 
-def run_one(motion: str, seed: int, overrides: dict[str, object], quick: bool) -> dict:
+def run_one(
+    motion: str, seed: int, overrides: dict[str, object], quick: bool, threads: int = 1
+) -> dict:
     """Trains and evaluates one (motion, seed) in this process; returns one result row."""
     import torch
 
-    torch.set_num_threads(1)
+    torch.set_num_threads(threads)
     from snds.data import Normalization, load_lasa, split_samples
     from snds.evaluate import evaluate
     from snds.plotting import plot_all
@@ -137,21 +144,16 @@ def summarise(rows: list[dict], motions: list[str]) -> str:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--motions", nargs="+", default=list(PAPER8))
-    parser.add_argument("--seeds", type=int, default=3)
-    parser.add_argument("--jobs", type=int, default=os.cpu_count() or 1)
-    parser.add_argument("--set", nargs="*", default=[], help="config overrides key=value")
-    parser.add_argument("--tag", default="", help="suffix of the result files")
-    parser.add_argument("--quick", action="store_true", help="smaller stability check")
-    parser.add_argument("--no-readme", action="store_true")
-    parser.add_argument(
+    options = parser(__doc__, seeds=3, jobs=True, overrides=True, tag=True)
+    options.add_argument("--motions", nargs="+", default=list(PAPER8))
+    options.add_argument("--quick", action="store_true", help="smaller stability check")
+    options.add_argument(
         "--summarise",
         metavar="JSON",
         default=None,
         help="rebuild the table (and README section 'core') from a results file; no runs",
     )
-    args = parser.parse_args()
+    args = options.parse_args()
     if args.summarise:
         record = json.loads(Path(args.summarise).read_text())
         meta, rows = record["meta"], record["rows"]
@@ -163,7 +165,9 @@ def main() -> None:
             write_readme_section("core", header_line(meta, rows) + "\n\n" + table)
         return
     overrides = parse_pairs(args.set)
-    calls = [(m, s, overrides, args.quick) for m in args.motions for s in range(args.seeds)]
+    calls = [
+        (m, s, overrides, args.quick, args.threads) for m in args.motions for s in range(args.seeds)
+    ]
     finished = {}
     for index, row in starmap_unordered(run_one, calls, jobs=args.jobs):
         finished[index] = row
@@ -171,40 +175,13 @@ def main() -> None:
     # The files keep the order of the runs (motion-major), whichever finished first.
     rows = [finished[index] for index in range(len(calls))]
     name = "core" + (f"-{args.tag}" if args.tag else "")
-    out = HERE / "results"
-    out.mkdir(exist_ok=True)
-    meta = {
-        "date": datetime.date.today().isoformat(),
-        "machine": f"{platform.machine()}, {os.cpu_count()} cores, {platform.platform()}",
-        "commit": _commit(),
-        "jobs": args.jobs,
-        "seeds": args.seeds,
-        "quick": args.quick,
-        "overrides": overrides,
-        "load_average": os.getloadavg(),
-    }
-    (out / f"{name}.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=2))
-    with open(out / f"{name}.csv", "w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
+    meta = machine(threads=args.threads, jobs=args.jobs)
+    meta |= {"seeds": args.seeds, "quick": args.quick, "overrides": overrides}
+    write_results(name, rows, meta)
     table = summarise(rows, args.motions)
     print(table)
     if not args.no_readme:
         write_readme_section(name, header_line(meta, rows) + "\n\n" + table)
-
-
-def _commit() -> str:
-    """The checkout's commit (short hash), with "+changes" if the tree differs from it."""
-    import subprocess
-
-    def git(*command: str) -> str:
-        return subprocess.run(
-            ["git", *command], cwd=HERE, capture_output=True, text=True, check=False
-        ).stdout.strip()
-
-    commit = git("rev-parse", "--short", "HEAD") or "unknown"
-    return commit + ("+changes" if git("status", "--porcelain", "--untracked-files=no") else "")
 
 
 def header_line(meta: dict, rows: list[dict]) -> str:
@@ -219,13 +196,8 @@ def header_line(meta: dict, rows: list[dict]) -> str:
     if all("plot_seconds" in r for r in rows):
         after = f"; the check and the plots together wall {spread('check_seconds', 'plot_seconds')}"
 
-    together = "one run at a time" if meta["jobs"] == 1 else f"{meta['jobs']} runs side by side"
-    load = meta.get("load_average")
-    busy = f" (load average {load[0]:.1f} at the end)" if load else ""
     return (
-        f"Measured {meta['date']} at {meta.get('commit', 'an unrecorded commit')} on "
-        f"{meta['machine']}; {together}, one torch thread each"
-        f"{busy}; overrides {meta['overrides'] or 'none'}"
+        f"{machine_line(meta)} Overrides {meta['overrides'] or 'none'}"
         f"{'; quick check' if meta.get('quick') else ''}. Training wall {spread('train_seconds')}, "
         f"CPU {spread('train_cpu_seconds')}; check wall {spread('check_seconds')}, CPU "
         f"{spread('check_cpu_seconds')}{after}."

@@ -18,12 +18,8 @@ Writes ``benchmarks/results/latency.json`` (with the exported files' equality ch
 
 from __future__ import annotations
 
-import argparse
-import csv
-import datetime
 import json
 import os
-import platform
 import tempfile
 import time
 from collections.abc import Callable
@@ -32,12 +28,11 @@ from pathlib import Path
 import numpy as np
 import onnxruntime
 import torch
-from _readme import cpu_name, write_readme_section
+from _runner import machine, machine_line, parser, write_readme_section, write_results
 
 from snds import c_check, c_export, export
 from snds.models import load_model
 
-HERE = Path(__file__).resolve().parent
 BATCH = 10_000
 
 
@@ -236,23 +231,18 @@ def _run(
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--model", type=Path, default=Path("runs/Sine"), help="model directory")
-    parser.add_argument("--calls", type=int, default=10_000, help="timed single-state calls")
-    parser.add_argument("--rounds", type=int, default=3, help="rounds; the best one is kept")
-    parser.add_argument("--batch-calls", type=int, default=50, help="timed batch calls")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the batch states")
-    parser.add_argument(
-        "--tag", default="", help="suffix of the result files and of the README block"
-    )
-    parser.add_argument("--no-readme", action="store_true")
-    args = parser.parse_args()
+    options = parser(__doc__, threads=False, tag=True)
+    options.add_argument("--model", type=Path, default=Path("runs/Sine"), help="model directory")
+    options.add_argument("--calls", type=int, default=10_000, help="timed single-state calls")
+    options.add_argument("--rounds", type=int, default=3, help="rounds; the best one is kept")
+    options.add_argument("--batch-calls", type=int, default=50, help="timed batch calls")
+    options.add_argument("--seed", type=int, default=0, help="seed of the batch states")
+    args = options.parse_args()
     if not (args.model / "model.json").is_file():
         raise SystemExit(
             f"{args.model}: no model; train one with `snds train --motion Sine --out {args.model}`"
         )
     policy, description = load_model(args.model)
-    out = HERE / "results"
     with tempfile.TemporaryDirectory(prefix="snds-latency-") as folder:
         rows, checks = _run(
             policy,
@@ -262,11 +252,7 @@ def main() -> None:
             rounds=args.rounds,
             batch_calls=args.batch_calls,
         )
-    meta = {
-        "date": datetime.date.today().isoformat(),
-        "machine": f"{platform.machine()}, {os.cpu_count()} cores, {platform.platform()}",
-        "processor": cpu_name(),
-        "torch": torch.__version__,
+    meta = machine() | {
         "onnxruntime": onnxruntime.__version__,
         "model": str(args.model),
         "motion": description.get("data", {}).get("motion"),
@@ -274,19 +260,16 @@ def main() -> None:
         "checks": checks,
     }
     name = "latency" + (f"-{args.tag}" if args.tag else "")
-    (out / f"{name}.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=2) + "\n")
-    with open(out / f"{name}.csv", "w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
+    write_results(name, rows, meta)
     body = table(rows, checks)
     print(body)
     if not args.no_readme:
         sizes = meta["architecture"] or {}
         header = (
-            f"Measured {meta['date']} on {meta['machine']} ({meta['processor']}) (on a "
-            "machine shared with other work wall times grow; the CPU time of a one-thread "
-            f"call is what it takes on a free core): best of {args.rounds} rounds per row; "
+            f"{machine_line(meta)} On a machine shared with other work wall times grow; the "
+            "CPU time of a one-thread call is what it takes on a free core. "
+            f"`python benchmarks/latency.py --model {args.model}`: best of {args.rounds} "
+            "rounds per row; "
             f"torch {meta['torch']}, onnxruntime {meta['onnxruntime']}; model `{args.model}` "
             f"({meta['motion'] or 'custom data'}; hidden {sizes.get('hidden')}, "
             f"{sizes.get('fourier_features')} Fourier features). The differences are the "

@@ -1,12 +1,13 @@
-"""Obstacles across the demonstrated paths: the stability report under obstacles (issue 20).
+"""Obstacles across the demonstrated paths: the stability report under obstacles.
 
-For each of the paper's 8 LASA motions (seed 0) and a 3-D real task, a trained model
-(``snds train --motion M --seed 0 --out RUNS/M --quiet``; ``--data
-../shared/data/3D_Cshape_top.mat --out RUNS/Cshape3D``) gets obstacles placed by a fixed rule
-on its demonstrated path, and :func:`snds.obstacles.check_obstacles` rolls it out from 1,000
-random free starts in the box 3x the extent and from the demonstrations' starts: reached,
-stalled (clustered, by kind), penetrated, smallest clearance against the margin, DTW to the
-demonstrations the obstacles leave free, and the check's CPU and wall time.
+For each of the paper's 8 LASA motions (seed 0) and a 3-D real task, a trained model of the
+positions alone (``snds train --motion M --seed 0 --phase-codes 0 --out RUNS/M --quiet``;
+``--data ../shared/data/3D_Cshape_top.mat --phase-codes 0 --out RUNS/Cshape3D``) gets
+obstacles placed by a fixed rule on its demonstrated path, and
+:func:`snds.obstacles.check_obstacles` rolls it out from 1,000 random free starts in the
+box 3x the extent and from the demonstrations' starts: reached, stalled (clustered, by kind),
+penetrated, smallest clearance against the margin, DTW to the demonstrations the obstacles
+leave free, and the check's CPU and wall time.
 
 Placement rule (deterministic). Motion i (0-based, in the paper's order) gets K = 1 + i mod 3
 spheres of radius 0.08 and margin 0.02 (in units of the motion's extent, the largest
@@ -29,15 +30,13 @@ the table into benchmarks/README.md (the ``obstacles`` block; not with ``--no-re
 
 from __future__ import annotations
 
-import argparse
 import csv
 import json
 import time
 from pathlib import Path
 
 import numpy as np
-import torch
-from _readme import write_readme_section
+from _runner import DATA, RESULTS, machine, machine_line, parser, set_threads, write_readme_section
 
 from snds.benchmark import MOTION_GROUPS
 from snds.data import load_demonstrations, load_lasa
@@ -48,8 +47,7 @@ from snds.obstacles import Box, Scene, Sphere, check_obstacles
 PAPER8 = list(MOTION_GROUPS["paper8"])
 FRACTIONS = {1: (0.5,), 2: (0.35, 0.65), 3: (0.3, 0.5, 0.7)}
 RADIUS, MARGIN = 0.08, 0.02
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
-OUT = Path(__file__).resolve().parent / "results" / "obstacles"
+OUT = RESULTS / "obstacles"
 
 
 def along(path: np.ndarray, fraction: float) -> np.ndarray:
@@ -142,14 +140,14 @@ def markdown(rows: list[dict]) -> str:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--runs", type=Path, default=Path("runs/obst"), help="trained models")
-    parser.add_argument("--motions", default=",".join(PAPER8))
-    parser.add_argument("--rollouts", type=int, default=1000)
-    parser.add_argument("--no-3d", action="store_true", help="skip the 3-D task")
-    parser.add_argument("--no-readme", action="store_true", help="leave benchmarks/README.md")
-    args = parser.parse_args()
-    torch.set_num_threads(1)
+    options = parser(__doc__)
+    options.add_argument("--runs", type=Path, default=Path("runs/obst"), help="trained models")
+    options.add_argument("--motions", default=",".join(PAPER8))
+    options.add_argument("--rollouts", type=int, default=1000)
+    options.add_argument("--no-3d", action="store_true", help="skip the 3-D task")
+    args = options.parse_args()
+    set_threads(args.threads)
+    meta = machine(threads=args.threads)
     OUT.mkdir(parents=True, exist_ok=True)
     rows = []
     started = time.perf_counter()
@@ -172,9 +170,11 @@ def main() -> None:
         writer.writerows(rows)
     (OUT / "summary.md").write_text(markdown(rows))
     print(markdown(rows))
-    print(f"total {time.perf_counter() - started:.0f} s wall")
+    total = time.perf_counter() - started
+    print(f"total {total:.0f} s wall")
     if not args.no_readme:
-        write_readme_section("obstacles", markdown(rows).rstrip())
+        head = f"{machine_line(meta)} Total {total:.0f} s wall.\n\n"
+        write_readme_section("obstacles", head + markdown(rows).rstrip())
 
 
 if __name__ == "__main__":

@@ -23,6 +23,11 @@ needs (a rate, a quaternion order, a length unit), one run per seed, then measur
 
     python benchmarks/real_recordings.py --seeds 3            # train, measure, write
     python benchmarks/real_recordings.py --seeds 3 --done-only  # measure runs already trained
+    python benchmarks/real_recordings.py --shapes OUT_DIR       # only write the drawn shapes
+
+The drawn shapes ("e", loop, alpha, phi) are drawn as a person draws on the page: several
+demonstrations each with its own pace, a small affine jitter and hand tremor (seeded), written
+as ``snds train --data`` CSV files.
 
 Writes runs under ``runs/real-recordings/``, ``benchmarks/results/real-recordings.json`` and
 the ``real-recordings`` table of ``benchmarks/README.md``.
@@ -30,18 +35,25 @@ the ``real-recordings`` table of ``benchmarks/README.md``.
 
 from __future__ import annotations
 
-import argparse
 import json
 import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
-import torch
-from _readme import cpu_name, write_readme_section
-from drawn_shapes import SHAPES, write_csv
+from _runner import (
+    DATA,
+    RESULTS,
+    children_cpu,
+    machine,
+    machine_line,
+    parser,
+    set_threads,
+    write_readme_section,
+)
 
 from snds.data import DataSource
 from snds.metrics import frechet
@@ -51,8 +63,77 @@ from snds.policy import float64_copy
 from snds.rollout import rollout_numpy
 from snds.stability import CheckConfig, check_stability
 
-HERE = Path(__file__).resolve().parent
-DATA = HERE.parent.parent / "shared" / "data"
+
+def _e(s: np.ndarray) -> np.ndarray:
+    # The bar from left to right, then counter-clockwise around, crossing the bar's start.
+    bar = s < 0.3
+    angle = np.where(bar, 0.0, (s - 0.3) / 0.7) * 1.75 * np.pi
+    x = np.where(bar, -1.0 + 2.0 * s / 0.3, np.cos(angle))
+    y = np.where(bar, 0.0, np.sin(angle))
+    return np.stack([x, y], -1)
+
+
+def _loop(s: np.ndarray) -> np.ndarray:
+    # A trochoid: left to right with one loop in the middle.
+    turn = 2.0 * np.pi * s
+    return np.stack([3.0 * s + 1.2 * np.sin(turn), 1.2 * (1.0 - np.cos(turn))], -1)
+
+
+def _alpha(s: np.ndarray) -> np.ndarray:
+    angle = np.pi * (0.15 + 1.7 * s)
+    return np.stack([0.6 * np.sin(2.0 * angle) + 0.5 * (s - 0.5), np.sin(angle)], -1)
+
+
+def _phi(s: np.ndarray) -> np.ndarray:
+    # A circle from the top, then a stroke down through it, crossing it twice.
+    circle = s < 0.6
+    angle = np.pi / 2 + 2.0 * np.pi * s / 0.6
+    x = np.where(circle, np.cos(angle), 0.0)
+    y = np.where(circle, np.sin(angle), 1.0 - 2.6 * (s - 0.6) / 0.4)
+    return np.stack([x, y], -1)
+
+
+#: The shapes by name, each a curve over s in [0, 1].
+SHAPES: dict[str, Callable[[np.ndarray], np.ndarray]] = {
+    "e": _e,
+    "loop": _loop,
+    "alpha": _alpha,
+    "phi": _phi,
+}
+
+
+def draw(
+    name: str,
+    *,
+    demos: int = 7,
+    samples: int = 400,
+    seed: int = 0,
+    scale: float = 100.0,
+    rate: float = 100.0,
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Demonstrations of one shape: (positions (T, 2), times (T,)) each, sampled at ``rate``
+    Hz, with a slow start and end, a random pace, affine jitter and tremor."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(demos):
+        count = samples + int(rng.integers(-samples // 5, samples // 5))
+        t = np.linspace(0.0, 1.0, count)
+        s = (1.0 - np.cos(np.pi * t ** rng.uniform(0.7, 1.3))) / 2.0
+        warp = np.eye(2) + rng.normal(0.0, 0.06, (2, 2))
+        points = SHAPES[name](s) @ warp.T + rng.normal(0.0, 0.05, 2)
+        points = points + 0.3 * rng.normal(0.0, 0.004, points.shape).cumsum(0)
+        out.append((scale * points, np.arange(count) / rate))
+    return out
+
+
+def write_csv(name: str, path: Path, **options: float) -> Path:
+    """Writes the demonstrations of ``name`` as ``demo,t,x1,x2`` rows; returns ``path``."""
+    rows = ["demo,t,x1,x2"]
+    for d, (points, times) in enumerate(draw(name, **options)):
+        rows += [f"{d},{t:.4f},{x:.4f},{y:.4f}" for t, (x, y) in zip(times, points)]
+    path.write_text("\n".join(rows) + "\n")
+    return path
+
 
 #: What the RoboTasks9 files need (../shared/data/README.md): no time stamps (60 Hz), the
 #: quaternion scalar first, centimetres.
@@ -76,22 +157,15 @@ TASKS: dict[str, list[str]] = {
 BARS = {"frechet": 0.05, "final": 0.01, "angle_along": 0.1, "angle_end": 0.05, "push": 0.10}
 
 
-def train(task: str, seed: int, out: Path, drawn: Path) -> float:
+def train(task: str, seed: int, out: Path, drawn: Path, threads: int = 1) -> float:
     """Trains one task with the default `snds train`; returns its CPU seconds."""
     file, *options = TASKS[task]
     path = drawn / f"{file[6:]}.csv" if file.startswith("drawn:") else DATA / file
-    argv = ["--threads", "1", "--quiet", "train", "--data", str(path), "--seed", str(seed)]
+    argv = ["--threads", str(threads), "--quiet", "train", "--data", str(path), "--seed", str(seed)]
     start = time.process_time()
-    before = _children_cpu()
+    before = children_cpu()
     subprocess.run([sys.executable, "-m", "snds", *argv, *options, "--out", str(out)], check=True)
-    return _children_cpu() - before + time.process_time() - start
-
-
-def _children_cpu() -> float:
-    import resource
-
-    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return usage.ru_utime + usage.ru_stime
+    return children_cpu() - before + time.process_time() - start
 
 
 def measure(run: Path, seed: int) -> dict:
@@ -192,10 +266,12 @@ def _cell(value) -> str:
     return "-" if value is None else f"{value:.3g}"
 
 
-def table(rows: list[dict]) -> str:
+def table(rows: list[dict], meta: dict) -> str:
     columns = ["frechet", "final", "angle_along", "angle_end", "push", "ratio", "arrived"]
+    seeds = max((r["seed"] for r in rows), default=-1) + 1
     lines = [
-        f"{cpu_name()}, one thread per run; worst over the seeds; bars: Fréchet <= 0.05, final "
+        f"{machine_line(meta)} `python benchmarks/real_recordings.py --seeds {seeds}`; worst "
+        "over the seeds; bars: Fréchet <= 0.05, final "
         "<= 0.01, angle along <= 0.1 rad, at the end <= 0.05, push <= 0.10 (extents), ratio "
         "<= 2, arrived 1.0, converged 1.0, 0 violations, safe step >= data step, check CPU <= "
         "fit CPU.",
@@ -227,16 +303,22 @@ def table(rows: list[dict]) -> str:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--seeds", type=int, default=3)
-    parser.add_argument("--tasks", default=",".join(TASKS))
-    parser.add_argument("--runs", type=Path, default=Path("runs/real-recordings"))
-    parser.add_argument("--done-only", action="store_true", help="measure trained runs only")
-    parser.add_argument("--out", type=Path, default=HERE / "results" / "real-recordings.json")
-    args = parser.parse_args()
+    options = parser(__doc__, seeds=3)
+    options.add_argument("--tasks", default=",".join(TASKS))
+    options.add_argument("--runs", type=Path, default=Path("runs/real-recordings"))
+    options.add_argument("--done-only", action="store_true", help="measure trained runs only")
+    options.add_argument("--out", type=Path, default=RESULTS / "real-recordings.json")
+    options.add_argument("--shapes", type=Path, metavar="DIR", help="only write the drawn shapes")
+    args = options.parse_args()
+    if args.shapes:
+        args.shapes.mkdir(parents=True, exist_ok=True)
+        for name in SHAPES:
+            print(write_csv(name, args.shapes / f"{name}.csv"))
+        return
     if not DATA.is_dir():
         raise SystemExit(f"no data folder at {DATA}")
-    torch.set_num_threads(1)
+    set_threads(args.threads)
+    meta = machine(threads=args.threads)
     rows = []
     with tempfile.TemporaryDirectory() as drawn:
         for name in SHAPES:
@@ -245,14 +327,15 @@ def main() -> None:
             for seed in range(args.seeds):
                 run = args.runs / f"{task}-{seed}"
                 if not args.done_only and not (run / "metrics.json").is_file():
-                    train(task, seed, run, Path(drawn))
+                    train(task, seed, run, Path(drawn), args.threads)
                 if (run / "metrics.json").is_file():
                     row = {"task": task, "seed": seed, **measure(run, seed)}
                     print(json.dumps(row), flush=True)
                     rows.append(row)
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({"cpu": cpu_name(), "rows": rows}, indent=1))
-    write_readme_section("real-recordings", table(rows))
+    args.out.write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
+    if not args.no_readme:
+        write_readme_section("real-recordings", table(rows, meta))
 
 
 if __name__ == "__main__":

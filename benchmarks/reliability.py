@@ -17,8 +17,9 @@ rollouts from the 3x box, 20,000 decrease samples in the 10x box (float64).
 
     python benchmarks/reliability.py                  # both parts; resumes
     python benchmarks/reliability.py --part real --seeds 2
-    python benchmarks/reliability.py --recipe convex  # the convex V of before 2026-12-02
+    python benchmarks/reliability.py --recipe convex  # a convex V (--warp-layers 0 ...)
     python benchmarks/reliability.py --part real --seeds 3 --recipe phase  # --phase-codes 3
+    python benchmarks/reliability.py --part real --seeds 3 --recipe plain  # --phase-codes 0
 
 Runs go to ``runs/reliability/{lasa,real}/`` (``runs/reliability-RECIPE`` for a recipe; models
 included); rows, a per-task summary and the README table go to
@@ -30,16 +31,14 @@ from __future__ import annotations
 
 import argparse
 import csv
-import datetime
 import json
 import os
-import platform
 import statistics
 import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from _readme import write_readme_section
+from _runner import DATA, RESULTS, machine, machine_line, parser, write_readme_section
 
 from snds.benchmark import SweepSettings, resolve_motions
 from snds.io import atomic_write, write_json
@@ -47,9 +46,7 @@ from snds.parallel import starmap_unordered
 from snds.policy import PolicyConfig
 from snds.train import TrainConfig
 
-HERE = Path(__file__).resolve().parent
-SHARED = HERE.parent.parent / "shared" / "data"
-RESULTS = HERE / "results" / "reliability"
+SHARED = DATA
 #: The largest held-out velocity error, relative to the demonstrated velocities' mean square.
 ACCURACY_BAR = 0.05
 #: task -> (file in ../shared/data, ``--demos`` selection or None for all)
@@ -67,10 +64,12 @@ REAL_TASKS: dict[str, tuple[str, str | None]] = {
 #: its own runs, results and README block, compared with the default's.
 RECIPES: dict[str, list[str]] = {
     "default": [],
-    # The defaults before 2026-12-02: a convex V trained on the demonstrated states.
+    # A convex V trained on the demonstrated states (docs/design.md, "The Lyapunov function").
     "convex": ["--warp-layers", "0", "--warp-weight", "0", "--position-noise", "0"],
-    # A phase of 3 numbers in the state (snds.phase): for recordings whose paths cross.
+    # A phase of 3 numbers in the state (snds.phase), as the default of `snds train` has it.
     "phase": ["--phase-codes", "3"],
+    # The positions alone, x' = f(x), as `snds benchmark` (the LASA part) trains them.
+    "plain": ["--phase-codes", "0"],
 }
 
 
@@ -308,7 +307,7 @@ def against(rows: Sequence[dict], other: Sequence[dict], label: str) -> str:
 
 
 def _results(recipe: str) -> Path:
-    return RESULTS.parent / ("reliability" if recipe == "default" else f"reliability-{recipe}")
+    return RESULTS / ("reliability" if recipe == "default" else f"reliability-{recipe}")
 
 
 def write_results(rows: Sequence[dict], args: argparse.Namespace, settings: SweepSettings) -> None:
@@ -325,22 +324,19 @@ def write_results(rows: Sequence[dict], args: argparse.Namespace, settings: Swee
             writer.writerows(rows)
 
     atomic_write(results / "rows.csv", write_csv)
-    machine = f"{platform.machine()}, {os.cpu_count()} cores, {platform.platform()}"
     recipe = "" if args.recipe == "default" else f" --recipe {args.recipe}"
     jobs = args.jobs or os.cpu_count() or 1
     flags = f"--seeds {args.seeds}{recipe}" + (f" --jobs {args.jobs}" if args.jobs else "")
     header = (
-        f"Tables of {datetime.date.today().isoformat()} (a resumed sweep keeps the rows of its "
-        f"earlier runs) on {machine} (`python benchmarks/reliability.py {flags}`), "
-        + ("one run at a time" if jobs == 1 else f"{jobs} runs side by side")
-        + ", one torch thread each. Bars: held-out velocity error at most "
+        f"{machine_line(machine(jobs=jobs))} A resumed sweep keeps the rows of its earlier runs. "
+        f"`python benchmarks/reliability.py {flags}`. Bars: held-out velocity error at most "
         f"{ACCURACY_BAR:g} of the velocities' mean square, converged 1.0 from "
         f"{settings.rollouts} random starts in the 3x box, 0 violations in {settings.samples:,} "
         f"decrease samples in the 10x box (float64). Per task: `results/{name}/summary.md`; "
         f"rows: `results/{name}/rows.csv`."
     )
     body = f"{header}\n\n{overall_table(rows)}"
-    other = "convex" if args.recipe == "default" else "default"
+    other = "plain" if args.recipe == "default" else "default"
     other_rows = _results(other) / "rows.json"
     if other_rows.is_file():
         body += "\n\n" + against(rows, json.loads(other_rows.read_text()), other)
@@ -350,24 +346,22 @@ def write_results(rows: Sequence[dict], args: argparse.Namespace, settings: Swee
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--part", choices=["lasa", "real", "both"], default="both")
-    parser.add_argument("--motions", default="all", help="LASA motions or groups")
-    parser.add_argument("--seeds", type=int, default=5)
-    parser.add_argument("--rollouts", type=int, default=300, help="per run's stability check")
-    parser.add_argument("--samples", type=int, default=20_000, help="per run's decrease check")
-    parser.add_argument("--jobs", type=int, default=None, help="local processes (all cores)")
-    parser.add_argument(
+    options = parser(__doc__, seeds=5, threads=False)
+    options.add_argument("--part", choices=["lasa", "real", "both"], default="both")
+    options.add_argument("--motions", default="all", help="LASA motions or groups")
+    options.add_argument("--rollouts", type=int, default=300, help="per run's stability check")
+    options.add_argument("--samples", type=int, default=20_000, help="per run's decrease check")
+    options.add_argument("--jobs", type=int, default=None, help="local processes (all cores)")
+    options.add_argument(
         "--runs", type=Path, default=None, help="runs folder (runs/reliability[-RECIPE])"
     )
-    parser.add_argument("--no-readme", action="store_true")
-    parser.add_argument(
+    options.add_argument(
         "--recipe",
         choices=list(RECIPES),
         default="default",
         help="training flags to add (default: none); a recipe has its own results and table",
     )
-    args = parser.parse_args()
+    args = options.parse_args()
     settings = SweepSettings(rollouts=args.rollouts, samples=args.samples)
     if args.runs is None:
         args.runs = Path("runs") / _results(args.recipe).name

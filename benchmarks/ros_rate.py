@@ -6,13 +6,12 @@ from the target and put back there every 5 s.
 
     python benchmarks/ros_rate.py --model tests/fixtures/models-c52752d/sine --rate 500
 
-Writes ``benchmarks/results/ros_rate.json``.
+Writes ``benchmarks/results/ros_rate.json`` and the ``ros-rate`` block of
+``benchmarks/README.md``.
 """
 
 from __future__ import annotations
 
-import argparse
-import datetime
 import json
 import os
 import time
@@ -20,8 +19,7 @@ from pathlib import Path
 
 import numpy as np
 import rclpy
-import torch
-from _readme import cpu_name
+from _runner import RESULTS, machine, machine_line, parser, set_threads, write_readme_section
 from geometry_msgs.msg import PoseStamped, TwistStamped
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
@@ -29,16 +27,14 @@ from rclpy.node import Node
 from snds.models import load_model
 from snds.ros import NodeConfig, make_node
 
-HERE = Path(__file__).resolve().parent
-
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--model", type=Path, default=Path("tests/fixtures/models-c52752d/sine"))
-    parser.add_argument("--rate", type=float, default=500.0)
-    parser.add_argument("--seconds", type=float, default=20.0)
-    args = parser.parse_args()
-    torch.set_num_threads(1)  # as the CLI
+    options = parser(__doc__)
+    options.add_argument("--model", type=Path, default=Path("tests/fixtures/models-c52752d/sine"))
+    options.add_argument("--rate", type=float, default=500.0)
+    options.add_argument("--seconds", type=float, default=20.0)
+    args = options.parse_args()
+    set_threads(args.threads)  # one, as the CLI
     policy, _ = load_model(args.model)
     start = policy.target + 3 * policy.normalization.length
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
@@ -81,16 +77,34 @@ def main() -> None:
         requested_rate=args.rate,
         wall_s=time.monotonic() - wall,
         cpu_s=time.process_time() - cpu,
-        date=datetime.date.today().isoformat(),
-        processor=cpu_name(),
         model=str(args.model),
-        load_average=os.getloadavg(),
+        **machine(threads=args.threads),
     )
     node.stop()
     executor.shutdown()
     rclpy.shutdown(context=context)
-    (HERE / "results" / "ros_rate.json").write_text(json.dumps(summary, indent=2) + "\n")
+    (RESULTS / "ros_rate.json").write_text(json.dumps(summary, indent=2) + "\n")
     print(json.dumps(summary))
+    if not args.no_readme:
+        write_readme_section("ros-rate", table(summary))
+
+
+def table(s: dict) -> str:
+    """The README block: achieved rate, jitter and overruns."""
+    load = f", load average {s['load_average'][0]:.1f}" if "load_average" in s else ""
+    where = machine_line(s) if "cpu" in s else f"Measured {s['date']} on {s['processor']}{load}."
+    return (
+        f"{where} `python benchmarks/ros_rate.py --model {s['model']} --rate "
+        f"{s['requested_rate']:g} --seconds {s['wall_s']:.0f}`.\n\n"
+        "| requested | achieved (mean / median period) | jitter: std / worst (ms) "
+        "| periods > half a period late | median / largest lateness (ms) | CPU s / wall s |\n"
+        "|---|---|---|---|---|---|\n"
+        f"| {s['requested_rate']:g} Hz | {s['rate']:.0f} / {s['median_rate']:.0f} Hz "
+        f"| {1e3 * s['jitter_std']:.1f} / {1e3 * s['jitter_max']:.0f} "
+        f"| {s['overruns']:,} of {s['periods']:,} "
+        f"| {1e3 * s['median_overrun']:.2f} / {1e3 * s['largest_overrun']:.0f} "
+        f"| {s['cpu_s']:.1f} / {s['wall_s']:.1f} |"
+    )
 
 
 if __name__ == "__main__":

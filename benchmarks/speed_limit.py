@@ -17,23 +17,18 @@ markers of ``benchmarks/README.md``.
 
 from __future__ import annotations
 
-import argparse
-import datetime
 import json
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
-import torch
-from _readme import cpu_name, write_readme_section
+from _runner import RESULTS, machine, machine_line, parser, set_threads, write_readme_section
 
 from snds.c_check import load_c
 from snds.c_export import export_c
 from snds.models import load_model
 from snds.policy import float64_copy
-
-HERE = Path(__file__).resolve().parent
 
 
 def starts(policy, radius: float) -> np.ndarray:
@@ -67,14 +62,12 @@ def run(controller, policy, x0: np.ndarray, *, rate: float, seconds: float, max_
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--model", type=Path, default=Path("tests/fixtures/models-c52752d/sine"))
-    parser.add_argument("--rate", type=float, default=500.0)
-    parser.add_argument("--seconds", type=float, default=40.0)
-    parser.add_argument("--tag", default="", help="suffix of the result file and README block")
-    parser.add_argument("--no-readme", action="store_true")
-    args = parser.parse_args()
-    torch.set_num_threads(1)
+    options = parser(__doc__, tag=True)
+    options.add_argument("--model", type=Path, default=Path("tests/fixtures/models-c52752d/sine"))
+    options.add_argument("--rate", type=float, default=500.0)
+    options.add_argument("--seconds", type=float, default=40.0)
+    args = options.parse_args()
+    set_threads(args.threads)
     policy = float64_copy(load_model(args.model)[0])
     top = float(policy.length / policy.time)
     x0 = starts(policy, 3.0)
@@ -105,16 +98,14 @@ def main() -> None:
             }
         )
         print(json.dumps(rows[-1]), flush=True)
-    meta = {
-        "date": datetime.date.today().isoformat(),
-        "processor": cpu_name(),
+    meta = machine(threads=args.threads) | {
         "model": str(args.model),
         "rate": args.rate,
         "seconds": args.seconds,
         "top_speed": top,
         "extent": float(policy.normalization.length),
     }
-    (HERE / "results" / f"speed_limit{'-' + args.tag if args.tag else ''}.json").write_text(
+    (RESULTS / f"speed_limit{'-' + args.tag if args.tag else ''}.json").write_text(
         json.dumps({"meta": meta, "rows": rows}, indent=2) + "\n"
     )
     lines = [
@@ -130,7 +121,7 @@ def main() -> None:
             f"{row['worst_final_distance_over_extent']:.3f} | {row['shortest_step_s']:.1e} |"
         )
     header = (
-        f"Measured {meta['date']} ({meta['processor']}, a shared machine): model `{args.model}` "
+        f"{machine_line(meta)} `python benchmarks/speed_limit.py --model {args.model}`: "
         f"(top speed {top:.1f} units/s, extent {meta['extent']:.1f}), 8 starts 3x the extent "
         f"away, the guarded command held for each period at {args.rate:g} Hz on an ideal "
         f"integrator for {args.seconds:g} s."

@@ -1,4 +1,5 @@
-"""The README stays short and true to the parser, and no link in the docs points nowhere."""
+"""The README stays short and true to the parser, no link in the docs points nowhere, and the
+benchmarks' README stays a short set of current tables whose results files it cites."""
 
 from __future__ import annotations
 
@@ -12,8 +13,10 @@ from snds.cli import _build_parser
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
-PAGES = [README, *sorted((ROOT / "docs").glob("*.md"))]
+BENCHMARKS = ROOT / "benchmarks" / "README.md"
+PAGES = [README, BENCHMARKS, *sorted((ROOT / "docs").glob("*.md"))]
 MAX_README_LINES = 160
+MAX_BENCHMARKS_LINES = 400
 
 FENCE = re.compile(r"^```.*?^```", re.MULTILINE | re.DOTALL)
 INLINE_CODE = re.compile(r"`[^`\n]*`")
@@ -62,6 +65,23 @@ def _subparsers() -> argparse._SubParsersAction:
 def test_readme_is_short():
     lines = README.read_text().count("\n")
     assert lines <= MAX_README_LINES, f"README.md has {lines} lines, at most {MAX_README_LINES}"
+
+
+def test_benchmarks_readme_is_short_and_current():
+    text = BENCHMARKS.read_text()
+    lines = text.count("\n")
+    assert lines <= MAX_BENCHMARKS_LINES, f"benchmarks/README.md has {lines} lines"
+    assert not re.search(r"\bstale\b", text, flags=re.IGNORECASE), "a table marked stale"
+
+
+def test_benchmark_results_are_cited():
+    # GIVEN what benchmarks/results holds (a file, or a folder, by name without its suffix)
+    text = BENCHMARKS.read_text()
+    results = BENCHMARKS.parent / "results"
+    entries = sorted(results.iterdir()) if results.is_dir() else []
+    # THEN the README cites each, so nothing is kept that no table reads
+    uncited = [p.name for p in entries if f"results/{p.name.split('.')[0]}" not in text]
+    assert not uncited, f"benchmarks/results holds files no table cites: {uncited}"
 
 
 def test_readme_cli_reference_matches_the_parser():

@@ -1,3 +1,3 @@
 """The library's version (as in pyproject.toml), a leaf that model files can record."""
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
