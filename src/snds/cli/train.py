@@ -184,7 +184,7 @@ def run(args: argparse.Namespace) -> int:
         policy,
         demos,
         split,
-        train_config,
+        config=train_config,
         progress=not args.quiet,
         checkpoint=checkpoint,
         checkpoint_every=args.checkpoint_every,
