@@ -65,6 +65,7 @@ def test_hooks_fire_in_order_with_the_right_counts(spiral, tmp_path):
     assert [event.step for event in steps] == list(range(12))
     assert [event.loss for event in steps] == result.history
     assert all(event.total == 12 and event.fit == 0 and event.lr > 0 for event in steps)
+    assert all(event.policy is policy for event in steps)
     saved = [event.steps for hook, event in recorder.events if hook == "checkpoint"]
     assert saved == [5, 10, 12]
     (_, end), *_ = [(h, e) for h, e in recorder.events if h == "end"]

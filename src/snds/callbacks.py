@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import sys
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -45,6 +45,9 @@ class StepEvent:
         loss: The step's loss.
         smoothed: The exponentially smoothed loss (weight 0.05 on each new step).
         lr: The learning rate the step used.
+        policy: The policy being trained, live (its weights after this step): read it
+            (e.g. ``copy.deepcopy`` or ``state_dict`` to show the field while training),
+            never modify it, or the fit is no longer reproducible.
     """
 
     fit: int
@@ -53,6 +56,7 @@ class StepEvent:
     loss: float
     smoothed: float
     lr: float
+    policy: Any = field(repr=False, compare=False)
 
 
 @dataclass(frozen=True)

@@ -295,7 +295,9 @@ def train_loop(
                 notify(callbacks, "on_restart", event)
                 continue
             lr = _step(one, value)
-            event = StepEvent(one.index, step, config.steps, value, one.state.smoothed, lr)
+            event = StepEvent(
+                one.index, step, config.steps, value, one.state.smoothed, lr, one.policy
+            )
             if notify(callbacks, "on_step", event):
                 ended.append((one, "callback"))
             elif config.patience and one.state.since_best >= config.patience:
