@@ -6,7 +6,6 @@ import torch
 
 import snds.batches as batches
 import snds.losses as losses_module
-import snds.optim as optim
 import snds.train as train_module
 from snds.data import Demonstration, Demonstrations, no_split, split_samples
 from snds.evaluate import accuracy
@@ -489,31 +488,3 @@ def test_a_noiseless_fit_with_samples_a_hair_from_the_target_does_not_diverge():
     # THEN no step diverged (there |grad V|^2 ~ 1e-38 and the projection's derivative overflowed)
     assert result.restarts == 0
     assert all(torch.isfinite(p).all() for p in policy.parameters())
-
-
-def test_adam_step_calls_torchs_fused_kernel_directly_and_fails_loudly_without_it(spiral):
-    # snds.optim.adam_step calls the private torch._fused_adam_ (measured to earn its place:
-    # benchmarks/results/adam_step.json). A torch that drops or changes it must fail here, not
-    # fall back to optimizer.step() unnoticed.
-    assert callable(getattr(torch, "_fused_adam_", None)), "torch._fused_adam_ is gone"
-    policy = make_policy(spiral, SMALL)
-    twin = make_policy(spiral, SMALL)
-    steps = []
-    for model in (policy, twin):
-        optimizer = optim.adam(model.parameters(), 1e-2)
-        for p in model.parameters():
-            p.grad = torch.ones_like(p)
-        optimizer.step()  # Adam's state exists from here on
-        steps.append(optimizer)
-    direct, reference = steps
-
-    def refuse() -> None:
-        raise AssertionError("adam_step fell back to optimizer.step()")
-
-    direct.step = refuse
-    optim.adam_step(direct, 3e-3)
-    for group in reference.param_groups:
-        group["lr"] = 3e-3
-    reference.step()
-    for a, b in zip(policy.parameters(), twin.parameters(), strict=True):
-        assert torch.equal(a, b)

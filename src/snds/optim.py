@@ -1,9 +1,8 @@
-"""The optimiser's step: gradient clipping and fused Adam, without torch's per-call
-bookkeeping (the same arithmetic, bit for bit: tests/test_train.py).
+"""The optimiser's step: gradient clipping without torch's per-call grouping work (the same
+arithmetic, bit for bit: tests/test_train.py), and fused Adam.
 
 The networks are small, so a training step's cost is mostly the number of operations and
-Python calls, not their size: the bookkeeping of ``clip_grad_norm_`` and ``Adam.step`` costs
-more than their kernels here.
+Python calls, not their size.
 """
 
 from __future__ import annotations
@@ -42,48 +41,10 @@ def clip_gradients(parameters: Sequence[torch.Tensor], max_norm: float) -> torch
 def adam_step(optimizer: torch.optim.Adam, lr: float) -> None:
     """``optimizer.step()`` at learning rate ``lr`` (which it keeps in its parameter groups).
 
-    For a fused Adam of one parameter group, without AMSGrad, maximisation or weight decay,
-    whose state exists (from the second step on), this calls the kernel that
-    ``optimizer.step()`` calls, with the same arguments, directly: the same update, bit for
-    bit, without the optimiser's per-call bookkeeping, which costs more than the kernel on
-    these small networks. Otherwise it calls ``optimizer.step()``.
+    Through the public step: calling its fused kernel (``torch._fused_adam_``) directly saved
+    about 65 us of a 10 ms training step (0.6 %, ``benchmarks/results/adam_step.json``), not
+    worth a private torch call.
     """
     for group in optimizer.param_groups:
         group["lr"] = lr
-    group = optimizer.param_groups[0]
-    params = [p for p in group["params"] if p.grad is not None]
-    states = [optimizer.state.get(p) for p in params]
-    direct = (
-        len(optimizer.param_groups) == 1
-        and hasattr(torch, "_fused_adam_")
-        and group.get("fused")
-        and not (group["amsgrad"] or group["maximize"] or group["weight_decay"])
-        and not (group.get("differentiable") or group.get("decoupled_weight_decay"))
-        and params
-        and all(states)
-        and len({(p.device, p.dtype) for p in params}) == 1
-    )
-    if not direct:
-        optimizer.step()
-        return
-    beta1, beta2 = group["betas"]
-    steps = [state["step"] for state in states]
-    with torch.no_grad():
-        torch._foreach_add_(steps, 1)
-        torch._fused_adam_(
-            params,
-            [p.grad for p in params],
-            [state["exp_avg"] for state in states],
-            [state["exp_avg_sq"] for state in states],
-            [],
-            steps,
-            amsgrad=False,
-            lr=lr,
-            beta1=beta1,
-            beta2=beta2,
-            weight_decay=0.0,
-            eps=group["eps"],
-            maximize=False,
-            grad_scale=None,
-            found_inf=None,
-        )
+    optimizer.step()
