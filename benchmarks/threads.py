@@ -54,13 +54,12 @@ def _timed(work) -> dict:
     return {"wall": time.perf_counter() - wall, "cpu": time.process_time() - cpu}
 
 
-def measure_library(steps: int, rounds: int) -> list[dict]:
-    """A fit of ``steps`` steps (default recipe, Sine) and its evaluation (the default check)
-    at 1 and 2 threads, alternately."""
+def measure_library(steps: int, rounds: int, rollouts: int, rows: list, save) -> None:
+    """A fit of ``steps`` steps (default recipe, Sine) and its evaluation (the default check
+    with ``rollouts`` random starts) at 1 and 2 threads, alternately; ``save`` after each."""
     demos = snds.RECIPES["default"].phase.apply(snds.load_lasa("Sine"))
     split = snds.split_samples(demos, test_fraction=0.2, seed=0)
     config = snds.TrainConfig(steps=steps, seed=0)
-    rows = []
     for round_ in range(rounds):
         for threads in (1, 2):
             policy = snds.make_policy(demos, config=snds.PolicyConfig())
@@ -72,7 +71,7 @@ def measure_library(steps: int, rounds: int) -> list[dict]:
             )
             check = _timed(
                 lambda p=policy, t=threads: snds.evaluate.evaluate(
-                    p, demos, split, check=snds.CheckConfig(), threads=t
+                    p, demos, split, check=snds.CheckConfig(rollouts=rollouts), threads=t
                 )
             )
             rows.append(
@@ -80,6 +79,7 @@ def measure_library(steps: int, rounds: int) -> list[dict]:
                     "round": round_,
                     "threads": threads,
                     "fit_steps": steps,
+                    "check_rollouts": rollouts,
                     "fit_wall": fit["wall"],
                     "fit_cpu": fit["cpu"],
                     "evaluate_wall": check["wall"],
@@ -89,7 +89,7 @@ def measure_library(steps: int, rounds: int) -> list[dict]:
                 }
             )
             print(json.dumps(rows[-1]), flush=True)
-    return rows
+            save()
 
 
 def _readme_block() -> str:
@@ -109,10 +109,9 @@ def _child(argv: list[str], cwd: Path) -> dict:
     return {"wall": wall, "cpu": cpu, "load_before": load, "load_after": os.getloadavg()}
 
 
-def measure_readme(rounds: int) -> list[dict]:
+def measure_readme(rounds: int, rows: list, save) -> None:
     """The README's Python block as a script against ``snds train --motion Sine`` (the same
     data, recipe, fit and default check), each in a fresh process."""
-    rows = []
     with tempfile.TemporaryDirectory() as folder:
         work = Path(folder)
         script = work / "readme_example.py"
@@ -125,13 +124,14 @@ def measure_readme(rounds: int) -> list[dict]:
             ):
                 rows.append({"round": round_, "what": name, **_child(argv, work)})
                 print(json.dumps(rows[-1]), flush=True)
-    return rows
+                save()
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--steps", type=int, default=100, help="steps of the timed fit")
     parser.add_argument("--rounds", type=int, default=2, help="alternations of 1 and 2")
+    parser.add_argument("--rollouts", type=int, default=100, help="random starts of the check")
     parser.add_argument("--readme", action="store_true", help="also the README vs the CLI")
     parser.add_argument("--out", type=Path, default=HERE / "results" / "threads.json")
     args = parser.parse_args()
@@ -144,12 +144,18 @@ def main() -> None:
         "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
         "note": "shared machine: see load_before / load_after of each row",
     }
-    with torch_threads(torch.get_num_threads()):
-        record["library"] = measure_library(args.steps, args.rounds)
-    if args.readme:
-        record["readme_vs_cli"] = measure_readme(args.rounds)
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(record, indent=1) + "\n")
+
+    def save() -> None:  # after every row: a long run interrupted keeps what it measured
+        args.out.write_text(json.dumps(record, indent=1) + "\n")
+
+    if args.readme:
+        record["readme_vs_cli"] = []
+        measure_readme(args.rounds, record["readme_vs_cli"], save)
+    record["library"] = []
+    with torch_threads(torch.get_num_threads()):
+        measure_library(args.steps, args.rounds, args.rollouts, record["library"], save)
+    save()
     print(f"wrote {args.out}")
 
 
