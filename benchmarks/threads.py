@@ -133,6 +133,7 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=2, help="alternations of 1 and 2")
     parser.add_argument("--rollouts", type=int, default=100, help="random starts of the check")
     parser.add_argument("--readme", action="store_true", help="also the README vs the CLI")
+    parser.add_argument("--no-library", action="store_true", help="skip the 1 vs 2 threads part")
     parser.add_argument("--out", type=Path, default=HERE / "results" / "threads.json")
     args = parser.parse_args()
     record = {
@@ -153,6 +154,9 @@ def main() -> None:
         record["readme_vs_cli"] = []
         measure_readme(args.rounds, record["readme_vs_cli"], save)
     record["library"] = []
+    if args.no_library:
+        save()
+        return
     with torch_threads(torch.get_num_threads()):
         measure_library(args.steps, args.rounds, args.rollouts, record["library"], save)
     save()
