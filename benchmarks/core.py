@@ -82,7 +82,7 @@ def run_one(
     train_cpu = time.process_time() - cpu
     wall, cpu = time.perf_counter(), time.process_time()
     sizes = {"rollouts": 200, "samples": 10_000} if quick else {}
-    metrics = evaluate(policy, demos, split, check=CheckConfig(seed=seed, **sizes))
+    metrics = evaluate(policy, demos, split, check=CheckConfig(seed=seed, **sizes)).to_dict()
     check_seconds, check_cpu = time.perf_counter() - wall, time.process_time() - cpu
     # The pictures snds train --plot writes, timed as the second half of issue 18's bar on
     # what a run spends after training (the check plus the plots).
