@@ -32,7 +32,7 @@ from _readme import write_readme_section
 from snds.data import DataSource, split_samples
 from snds.evaluate import evaluate
 from snds.io import atomic_write
-from snds.method import make_policy
+from snds.methods import make_policy
 from snds.parallel import starmap_unordered
 from snds.policy import float64_copy
 from snds.recipes import RECIPES

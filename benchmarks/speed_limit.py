@@ -28,8 +28,8 @@ import numpy as np
 import torch
 from _readme import cpu_name, write_readme_section
 
-from snds.c_check import load_c
-from snds.c_export import export_c
+from snds.export.c import export_c
+from snds.export.c_check import load_c
 from snds.models import load_model
 from snds.policy import float64_copy
 

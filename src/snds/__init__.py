@@ -13,7 +13,7 @@ from snds.batched import fit_many
 from snds.data import load_demonstrations, load_lasa, no_split, split_samples
 from snds.data.poses import load_poses
 from snds.errors import DataError, ModelFileError, SNDSError
-from snds.method import make_policy
+from snds.methods import make_policy
 from snds.models import load_model, save_model
 from snds.phase import Phase, start_state
 from snds.policy import PolicyConfig, StablePolicy, project

@@ -22,6 +22,18 @@ from snds.errors import ConfigError
 from snds.nn import MLP, EuclideanizingFlow, Lyapunov, WarpedLyapunov
 from snds.spaces import Euclidean, Phased, Space
 
+__all__ = [
+    "DEFAULT_WARP_LAYERS",
+    "RECTIFIERS",
+    "FieldTerms",
+    "LyapunovFunction",
+    "Policy",
+    "PolicyConfig",
+    "StablePolicy",
+    "float64_copy",
+    "project",
+]
+
 #: Coupling layers of V's warp when :attr:`PolicyConfig.warp_layers` is None and n >= 2.
 DEFAULT_WARP_LAYERS = 4
 
@@ -402,13 +414,18 @@ class Policy(nn.Module, ABC):
 
 
 class StablePolicy(Policy):
-    r"""A velocity field :math:`\pi(x)` in user units that provably reaches the target.
+    r"""A velocity field :math:`\pi(x)` in user units that provably reaches the target, or,
+    with ``config.stable`` False, the unconstrained network of behavioural cloning, which
+    has no such guarantee.
 
     Internally it works in model coordinates (target at 0, extent 1, top speed 1; see
     :class:`~snds.data.Normalization`): :math:`\pi` there is :func:`project` applied to the
     nominal :math:`f(x) - f(0)` (so that the target is an equilibrium) with the
     :class:`~snds.nn.Lyapunov` function :math:`V` (a :class:`~snds.nn.WarpedLyapunov` with
-    ``warp_layers`` > 0) and decay :math:`a \ge \rho V`.
+    ``warp_layers`` > 0) and decay :math:`a \ge \rho V`. Behavioural cloning
+    (``config.stable`` False, :data:`snds.methods.BC`) skips the projection: :math:`\pi` is
+    :math:`f(x) - f(0)`, which may stop short of the target, circle or diverge; it keeps V's
+    unused weights so that both share one file layout.
 
     Arguments:
         dim: State dimension n.

@@ -18,7 +18,7 @@ from safetensors.torch import load_file, save_file
 from tqdm.auto import tqdm
 
 from snds.data.demonstrations import Demonstrations, Split
-from snds.errors import CheckpointError, ConfigError, DataError, SNDSError
+from snds.errors import CheckpointError, ConfigError, DataError, TrainingError
 from snds.io import atomic_write
 from snds.losses import (
     VELOCITY_SHAPES,
@@ -32,10 +32,6 @@ from snds.nn.flow import EuclideanizingFlow
 from snds.policy import Policy, StablePolicy
 
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
-
-
-class TrainingError(SNDSError, RuntimeError):
-    """Training diverged even after restarting from its last good state."""
 
 
 @dataclass(frozen=True, kw_only=True)

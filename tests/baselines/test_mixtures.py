@@ -12,8 +12,7 @@ import torch
 
 from snds.data import Demonstration, Demonstrations
 from snds.data.demonstrations import split_samples
-from snds.method import Method
-from snds.methods import METHODS, POLICY_KINDS
+from snds.methods import METHODS, POLICY_KINDS, Method
 from snds.models import load_model, save_model
 from snds.stability import CheckConfig, check_stability
 

@@ -83,8 +83,22 @@ from snds.baselines.mixture import (
 )
 from snds.data.demonstrations import Demonstrations, Normalization, Split
 from snds.errors import SNDSError
+from snds.fitting import Fitted
 from snds.losses import make_samples
-from snds.method import Fitted, Method
+from snds.spaces import Euclidean, Space
+
+__all__ = [
+    "FEATURES",
+    "LPVDS",
+    "LPVDSPolicy",
+    "fit_linear_systems",
+    "fit_lyapunov_matrix",
+    "lyapunov_matrix_from_factor",
+    "lyapunov_violation",
+    "physically_consistent_mixture",
+    "position_bic",
+    "similarity",
+]
 
 
 class LPVDSPolicy(MixtureLinearPolicy):
@@ -374,7 +388,7 @@ FEATURES = ("physically_consistent", "position_velocity", "position")
 
 
 @dataclass(frozen=True)
-class LPVDS(Method):
+class LPVDS:
     """LPV-DS fitted by a physically-consistent mixture, a data-driven P and an
     LMI-constrained least squares (the three steps of the module docstring).
 
@@ -403,6 +417,7 @@ class LPVDS(Method):
     name: str = "lpvds"
     description: str = "LPV-DS: Gaussian-mixture blend of linear systems, shared V = x'Px (LMIs)"
     has_lyapunov: ClassVar[bool] = True
+    spaces: ClassVar[tuple[type[Space], ...]] = (Euclidean,)
     components: int | None = None
     max_components: int = 20
     eps: float = 0.05

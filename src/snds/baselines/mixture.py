@@ -37,6 +37,23 @@ from snds.data.demonstrations import Normalization
 from snds.errors import SNDSError
 from snds.policy import Policy
 
+__all__ = [
+    "MixtureConfig",
+    "MixtureFit",
+    "MixtureLinearPolicy",
+    "QuadraticLyapunov",
+    "blend",
+    "design_matrix",
+    "fit_mixture",
+    "log_responsibilities",
+    "matrices_from_coefficients",
+    "precision_factor",
+    "require",
+    "single_threaded",
+    "stability_margin",
+    "subsample",
+]
+
 
 def require(module: str) -> ModuleType:
     """Imports a module of the ``baselines`` extra, or says how to install it."""

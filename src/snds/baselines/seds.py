@@ -60,8 +60,11 @@ from snds.baselines.mixture import (
     subsample,
 )
 from snds.data.demonstrations import Demonstrations, Normalization, Split
+from snds.fitting import Fitted
 from snds.losses import make_samples
-from snds.method import Fitted, Method
+from snds.spaces import Euclidean, Space
+
+__all__ = ["SEDS", "SEDSPolicy"]
 
 
 class SEDSPolicy(MixtureLinearPolicy):
@@ -236,7 +239,7 @@ def _optimise(params: _SEDSParameters, x: Tensor, v: Tensor, iterations: int) ->
 
 
 @dataclass(frozen=True)
-class SEDS(Method):
+class SEDS:
     """SEDS fitted by L-BFGS on the velocity MSE, stable by construction.
 
     Attributes:
@@ -255,6 +258,7 @@ class SEDS(Method):
     name: str = "seds"
     description: str = "SEDS: Gaussian mixture regression of stable linear systems (V = |x|^2)"
     has_lyapunov: ClassVar[bool] = True
+    spaces: ClassVar[tuple[type[Space], ...]] = (Euclidean,)
     components: int | None = None
     max_components: int = 15
     eps: float = 0.02

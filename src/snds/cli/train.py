@@ -21,7 +21,7 @@ from snds.cli._common import (
     _write_plots,
 )
 from snds.evaluate import evaluate
-from snds.method import make_policy
+from snds.methods import make_policy
 from snds.phase import Phase
 from snds.policy import DEFAULT_WARP_LAYERS, Policy, PolicyConfig
 from snds.recipes import ARCHITECTURES, RECIPES, recipe_for

@@ -21,6 +21,29 @@ from snds.data.demonstrations import Demonstration, Demonstrations
 from snds.data.targets import MAX_END_SPREAD, common_target
 from snds.errors import DataError
 
+__all__ = [
+    "csv_number",
+    "error_context",
+    "existing_file",
+    "read_csv_rows",
+    "real_array",
+    "CSV_HEADER",
+    "DEFAULT_DT",
+    "DEFAULT_GAPS",
+    "GAP_MODES",
+    "LOADERS",
+    "NPZ_KEYS",
+    "check_gap_mode",
+    "estimate_time_step",
+    "fill_gaps",
+    "gap_durations",
+    "load_csv",
+    "load_demonstrations",
+    "load_mat",
+    "load_npz",
+    "retime_gaps",
+]
+
 DEFAULT_DT = 0.01
 """Time step (seconds) assumed for ``.npz`` files that store neither ``t`` nor ``dt``."""
 
@@ -111,14 +134,14 @@ def load_mat(
             holds matrices of the wrong shape or with NaN/inf, or ``gaps`` is unknown.
     """
     check_gap_mode(gaps)
-    path = _existing_file(path)
-    with _context(str(path)):
+    path = existing_file(path)
+    with error_context(str(path)):
         contents = _read_mat(path)
         dt = _mat_dt(contents)
         blocks = _mat_blocks(contents)
         demos = []
         for i, block in enumerate(blocks):
-            with _context(f"demonstration {i}"):
+            with error_context(f"demonstration {i}"):
                 demos.append(_mat_demonstration(block, dt, gaps))
         return _assemble(demos, path.stem, max_end_spread, select)
 
@@ -148,14 +171,14 @@ def load_csv(
             the column), a row is malformed or non-finite, or a demonstration is invalid
             (fewer than 2 samples, repeated or decreasing times).
     """
-    path = _existing_file(path)
-    with _context(str(path)):
-        rows = _read_csv_rows(path)
+    path = existing_file(path)
+    with error_context(str(path)):
+        rows = read_csv_rows(path)
         n, has_velocities = _parse_header(rows[0][1])
         samples = _group_samples(rows[1:], len(rows[0][1]))
         demos = []
         for label, values in samples.items():
-            with _context(f"demo {label!r}"):
+            with error_context(f"demo {label!r}"):
                 velocities = values[:, 1 + n :] if has_velocities else None
                 demos.append(_demonstration(values[:, 1 : 1 + n], velocities, values[:, 0]))
         return _assemble(demos, path.stem, max_end_spread, select)
@@ -187,8 +210,8 @@ def load_npz(
         DataError: If the file is missing, not an ``.npz`` archive, has unknown or missing keys,
             arrays of the wrong shape or type, or NaN/inf values.
     """
-    path = _existing_file(path)
-    with _context(str(path)):
+    path = existing_file(path)
+    with error_context(str(path)):
         arrays = _read_npz(path)
         positions = _npz_positions(arrays)
         velocities = arrays.get("vel")
@@ -197,7 +220,7 @@ def load_npz(
         times = _npz_times(arrays, positions.shape[:2])
         demos = []
         for i in range(positions.shape[0]):
-            with _context(f"demonstration {i}"):
+            with error_context(f"demonstration {i}"):
                 demo_velocities = None if velocities is None else velocities[i]
                 demos.append(_demonstration(positions[i], demo_velocities, times[i]))
         return _assemble(demos, path.stem, max_end_spread, select)
@@ -263,7 +286,7 @@ def _least_squares_step(steps: np.ndarray, mean_velocities: np.ndarray) -> float
 
 
 @contextlib.contextmanager
-def _context(where: str) -> Iterator[None]:
+def error_context(where: str) -> Iterator[None]:
     """Prefixes DataErrors raised inside with ``where``, so messages say which file and demo."""
     try:
         yield
@@ -271,7 +294,8 @@ def _context(where: str) -> Iterator[None]:
         raise DataError(f"{where}: {error}") from error
 
 
-def _existing_file(path: str | Path) -> Path:
+def existing_file(path: str | Path) -> Path:
+    """``path`` as a Path; a :class:`~snds.errors.DataError` if it is missing or a folder."""
     path = Path(path)
     if not path.exists():
         raise DataError(f"{path}: no such file")
@@ -316,7 +340,7 @@ def _assemble(
     return assembled
 
 
-def _numeric(value: object, what: str) -> np.ndarray:
+def real_array(value: object, what: str) -> np.ndarray:
     """``value`` as a float64 array, refusing text, objects and complex numbers."""
     if not isinstance(value, np.ndarray) or value.dtype.kind not in "iuf":
         kind = value.dtype if isinstance(value, np.ndarray) else type(value).__name__
@@ -341,7 +365,7 @@ def _read_mat(path: Path) -> dict[str, object]:
 def _mat_dt(contents: dict[str, object]) -> float | None:
     if "dt" not in contents:
         return None
-    dt = _numeric(contents["dt"], "'dt'")
+    dt = real_array(contents["dt"], "'dt'")
     if dt.size != 1 or not (np.isfinite(dt.item()) and dt.item() > 0):
         raise DataError(f"'dt' must be one positive number, got {np.ravel(dt)[:3]}")
     return dt.item()
@@ -352,12 +376,12 @@ def _mat_blocks(contents: dict[str, object]) -> list[np.ndarray]:
     if "Data" in contents and "data" in contents:
         raise DataError("holds both 'Data' and 'data'; keep one")
     if "Data" in contents:
-        return _split_at_rest(_numeric(contents["Data"], "'Data'"))
+        return _split_at_rest(real_array(contents["Data"], "'Data'"))
     if "data" in contents:
         cells = contents["data"]
         if not isinstance(cells, np.ndarray) or cells.dtype != object or cells.ndim != 2:
             raise DataError("'data' must be a k x 1 cell array of 2n x T matrices")
-        return [_numeric(cell, f"cell {i} of 'data'") for i, cell in enumerate(cells.ravel())]
+        return [real_array(cell, f"cell {i} of 'data'") for i, cell in enumerate(cells.ravel())]
     found = sorted(key for key in contents if not key.startswith("__"))
     raise DataError(f"no variable 'Data' or 'data' (found: {', '.join(found) or 'none'})")
 
@@ -520,7 +544,7 @@ def _hermite(
 # CSV.
 
 
-def _read_csv_rows(path: Path) -> list[tuple[int, list[str]]]:
+def read_csv_rows(path: Path) -> list[tuple[int, list[str]]]:
     """Non-blank rows with their line numbers; the first is the header."""
     rows = []
     try:
@@ -564,11 +588,12 @@ def _group_samples(rows: list[tuple[int, list[str]]], width: int) -> dict[str, n
     for line, row in rows:
         if len(row) != width:
             raise DataError(f"line {line} has {len(row)} fields, the header {width}")
-        groups.setdefault(row[0].strip(), []).append([_number(f, line) for f in row[1:]])
+        groups.setdefault(row[0].strip(), []).append([csv_number(f, line) for f in row[1:]])
     return {label: np.asarray(values) for label, values in groups.items()}
 
 
-def _number(field: str, line: int) -> float:
+def csv_number(field: str, line: int) -> float:
+    """A CSV field as a finite float; a :class:`~snds.errors.DataError` naming the line."""
     try:
         value = float(field)
     except ValueError:
@@ -597,7 +622,7 @@ def _read_npz(path: Path) -> dict[str, np.ndarray]:
     unknown = sorted(set(arrays) - set(NPZ_KEYS))
     if unknown:
         raise DataError(f"unexpected arrays {unknown} (expected keys: {', '.join(NPZ_KEYS)})")
-    return {key: _numeric(value, repr(key)) for key, value in arrays.items()}
+    return {key: real_array(value, repr(key)) for key, value in arrays.items()}
 
 
 def _npz_positions(arrays: dict[str, np.ndarray]) -> np.ndarray:
