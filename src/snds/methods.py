@@ -36,7 +36,7 @@ from snds.fitting import Fitted, train_network, training_record
 from snds.policy import Policy, PolicyConfig, StablePolicy
 from snds.recipes import recipe_for
 from snds.se3 import PosePolicy, make_pose_policy
-from snds.spaces import SE3, Euclidean, Space
+from snds.spaces import SE3, Euclidean, Phased, Space
 from snds.train import TrainConfig
 
 __all__ = [
@@ -136,7 +136,7 @@ class NeuralMethod:
     name: str
     description: str
     policy_config: PolicyConfig
-    spaces: ClassVar[tuple[type[Space], ...]] = (Euclidean, SE3)
+    spaces: ClassVar[tuple[type[Space], ...]] = (Euclidean, SE3, Phased)
 
     @property
     def has_lyapunov(self) -> bool:
