@@ -131,7 +131,9 @@ def convex_floor(policy: StablePolicy, demos: Demonstrations, split: Split) -> d
         vm = torch.as_tensor(policy.normalization.velocities_to_model(v))
         with torch.no_grad():
             value, grad = policy.lyapunov.value_and_grad(xm)
-            projected = project(vm, grad, policy.decay(value, xm), policy.config.rectifier)
+            projected = project(
+                vm, grad, policy.decay(value, xm), rectifier=policy.config.rectifier
+            )
         floors[name] = _relative(projected.numpy(), vm.numpy())
         floors[f"{name}_uphill_fraction"] = float(((grad * vm).sum(-1) > 0).double().mean())
     return floors

@@ -49,11 +49,11 @@ def train_network(
     policy: Policy,
     demos: Demonstrations,
     split: Split,
-    config: TrainConfig,
     *,
+    config: TrainConfig,
     progress: bool = False,
 ) -> Fitted:
     """Trains a network policy with :func:`snds.train.fit` and records how (for any method
     whose policy is trained by gradient descent on the velocity loss: SNDS, BC, SDS-EF)."""
-    result = fit(policy, demos, split, config, progress=progress)
+    result = fit(policy, demos, split, config=config, progress=progress)
     return Fitted(policy=policy, seconds=result.seconds, record=training_record(config, result))

@@ -154,7 +154,7 @@ class NeuralMethod:
     ) -> Fitted:
         """Fits a fresh policy (see :meth:`Method.fit`)."""
         policy, config = self._setup(demos, seed, steps)
-        return train_network(policy, demos, split, config, progress=progress)
+        return train_network(policy, demos, split, config=config, progress=progress)
 
     def fit_many(
         self,

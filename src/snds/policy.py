@@ -56,7 +56,7 @@ def _softplus(u: Tensor, sharpness: float = 50.0) -> Tensor:
 RECTIFIERS = {"relu": _relu, "softplus": _softplus}
 
 
-def project(f: Tensor, grad_v: Tensor, decay: Tensor, rectifier: str = "relu") -> Tensor:
+def project(f: Tensor, grad_v: Tensor, decay: Tensor, *, rectifier: str = "relu") -> Tensor:
     r"""Removes the part of a velocity field that would let V decrease too slowly.
 
     .. math:: \pi = f - \nabla V \, \frac{r(\nabla V^\top f + a)}{\|\nabla V\|^2}
@@ -568,7 +568,9 @@ class StablePolicy(Policy):
         if not self.stable:
             return FieldTerms(f, None, None, None)
         v, grad_v = self.lyapunov.value_and_grad(x)
-        return FieldTerms(project(f, grad_v, self.decay(v, x), self.config.rectifier), f, v, grad_v)
+        return FieldTerms(
+            project(f, grad_v, self.decay(v, x), rectifier=self.config.rectifier), f, v, grad_v
+        )
 
     def _field_and_value(self, z: Tensor) -> tuple[Tensor, Tensor]:
         terms = self.field_terms(z)

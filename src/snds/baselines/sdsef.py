@@ -312,4 +312,4 @@ class SDSEF:
             config=self.policy_config,
             seed=seed,
         )
-        return train_network(policy, demos, split, config, progress=progress)
+        return train_network(policy, demos, split, config=config, progress=progress)

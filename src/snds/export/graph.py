@@ -76,7 +76,7 @@ class Exported(torch.nn.Module):
         field = self.nominal(z)
         if policy.stable:
             v, grad_v = policy.lyapunov.value_and_grad(z)
-            field = project(field, grad_v, policy.decay(v, z), policy.config.rectifier)
+            field = project(field, grad_v, policy.decay(v, z), rectifier=policy.config.rectifier)
         return field * (policy.length / policy.time)
 
 
