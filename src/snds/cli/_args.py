@@ -6,7 +6,7 @@ import argparse
 import math
 from pathlib import Path
 
-from snds.data.files import GAP_MODES
+from snds.data.gaps import GAP_MODES
 from snds.data.options import LENGTH_UNITS, QUATERNION_ORDERS
 from snds.stability import ROLLOUTS, SAMPLES
 
