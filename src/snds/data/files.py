@@ -69,8 +69,8 @@ def load_demonstrations(
             is chosen: a subset that ends at one point can be used from a file whose
             demonstrations end at several (3D-pick-box ends at two places 0.26 m apart).
         gaps: How a ``.mat`` file's recording gaps are treated, one of
-            :data:`~snds.data.gaps.GAP_MODES` (see :func:`load_mat`). CSV and NPZ files carry their own time stamps; their samples
-            are kept as they are.
+            :data:`~snds.data.gaps.GAP_MODES` (see :func:`load_mat`). CSV and NPZ files carry
+            their own time stamps; their samples are kept as they are.
 
     Raises:
         DataError: If the extension is not supported, ``gaps`` is unknown, or the file cannot
@@ -110,8 +110,8 @@ def load_mat(
     A recording that dropped samples jumps by centimetres in one step (every demonstration of
     the 3-D LPV-DS files does, once, early in the motion). With ``gaps="fill"`` (the default)
     the missing samples are put back (:func:`~snds.data.gaps.fill_gaps`): the demonstration is
-    a continuous tube again, so a policy learns the motion across the gap and a reproduction is compared
-    with the path the arm took, not with a jump. ``gaps="retime"`` keeps the recorded
+    a continuous tube again, so a policy learns the motion across the gap and a reproduction
+    is compared with the path the arm took, not with a jump. ``gaps="retime"`` keeps the recorded
     samples and only gives the jump the time it took (:func:`~snds.data.gaps.retime_gaps`).
 
     Arguments:
