@@ -108,21 +108,10 @@ class LPVDSPolicy(MixtureLinearPolicy):
     numbers with :math:`P \succ 0` and :math:`A_k^\top P + P A_k \prec 0` verified in float64,
     and :meth:`decay` returns the verified rate, :math:`\dot V \le -c \|x\|^2`.
 
-    Arguments:
-        dim: State dimension n.
-        normalization: The task's affine map of space and time.
-        config: The number of components.
-        seed: Unused (nothing is random before the fit); kept for the common signature.
+    Built as :class:`~snds.baselines.mixture.MixtureLinearPolicy` is.
     """
 
     kind = "lpvds"
-    config_class = MixtureConfig
-
-    def __init__(
-        self, *, dim: int, normalization: Normalization, config: MixtureConfig, seed: int = 0
-    ) -> None:
-        super().__init__(dim=dim, normalization=normalization, components=config.components)
-        self.config = config
 
 
 def _solve(problem: Any, solver: str) -> str:

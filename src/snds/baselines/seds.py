@@ -74,21 +74,10 @@ class SEDSPolicy(MixtureLinearPolicy):
     when fitted by :class:`SEDS`, :meth:`decay` returns the verified rate
     :math:`c \ge 2\epsilon` of :math:`\dot V \le -c \|x\|^2`.
 
-    Arguments:
-        dim: State dimension n.
-        normalization: The task's affine map of space and time.
-        config: The number of components.
-        seed: Unused (nothing is random before the fit); kept for the common signature.
+    Built as :class:`~snds.baselines.mixture.MixtureLinearPolicy` is.
     """
 
     kind = "seds"
-    config_class = MixtureConfig
-
-    def __init__(
-        self, *, dim: int, normalization: Normalization, config: MixtureConfig, seed: int = 0
-    ) -> None:
-        super().__init__(dim=dim, normalization=normalization, components=config.components)
-        self.config = config
 
 
 def _project_stable(matrices: np.ndarray, eps: float) -> tuple[np.ndarray, np.ndarray]:
