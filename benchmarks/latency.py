@@ -30,7 +30,10 @@ import onnxruntime
 import torch
 from _runner import machine, machine_line, parser, write_readme_section, write_results
 
-from snds import c_check, c_export, export
+from snds import export
+from snds.export import c as c_export
+from snds.export import c_check
+from snds.export.graph import policy_copy
 from snds.models import load_model
 
 BATCH = 10_000
@@ -57,8 +60,8 @@ def _time(call: Callable[[], object], *, calls: int, warmup: int) -> tuple[np.nd
 def _backends(policy, files: dict[str, Path], threads: int) -> dict[str, Callable]:
     """Functions from a prepared input to velocities, one per (backend, precision)."""
     torch.set_num_threads(threads)
-    eager32 = export._copy(policy, torch.float32)
-    eager64 = export._copy(policy, torch.float64)
+    eager32 = policy_copy(policy, torch.float32)
+    eager64 = policy_copy(policy, torch.float64)
     program = torch.export.load(str(files["pt2"])).module()
 
     def eager(module):

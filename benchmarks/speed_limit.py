@@ -25,8 +25,8 @@ from pathlib import Path
 import numpy as np
 from _runner import RESULTS, machine, machine_line, parser, set_threads, write_readme_section
 
-from snds.c_check import load_c
-from snds.c_export import export_c
+from snds.export.c import export_c
+from snds.export.c_check import load_c
 from snds.models import load_model
 from snds.policy import float64_copy
 

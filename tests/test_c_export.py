@@ -1,4 +1,4 @@
-"""The C export (snds.c_export): compiled by the system's gcc as strict C99, it computes what
+"""The C export (snds.export.c): compiled by the system's gcc as strict C99, it computes what
 the library computes, for positions, poses and a phase, and its guarded step is the library's."""
 
 from __future__ import annotations
@@ -13,11 +13,13 @@ import pytest
 import torch
 
 import snds
-from snds import c_check, c_export, export
+from snds import export
 from snds.cli import main
 from snds.data import Demonstration, Demonstrations
 from snds.data.demonstrations import no_split
 from snds.data.poses import with_synthetic_orientations
+from snds.export import c as c_export
+from snds.export import c_check
 from snds.models import save_model
 from snds.phase import Phase, start_rule
 from snds.rollout import policy_guard, safe_velocity

@@ -201,13 +201,13 @@ def test_gaps_choose_how_a_mat_files_dropped_samples_are_read_and_are_recorded(t
 
 
 def test_relaxed_mode_turns_every_decay_term_off():
-    from snds.cli import _build_parser, _policy_config
+    from snds.cli import build_parser, policy_config
     from snds.data import Normalization, load_lasa
     from snds.policy import StablePolicy
 
     zeros = ["--decay-rate", "0", "--decay-far", "0", "--decay-near", "0"]
-    args = _build_parser().parse_args(["train", "--motion", "Sine", *zeros])
-    config = _policy_config(args)
+    args = build_parser().parse_args(["train", "--motion", "Sine", *zeros])
+    config = policy_config(args)
     assert config.decay_rate == config.decay_far == config.decay_near == 0.0
     demos = load_lasa("Sine")
     policy = StablePolicy(dim=2, normalization=Normalization.fit(demos), config=config)

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from snds.cli import _build_parser
+from snds.cli import build_parser
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
@@ -58,7 +58,7 @@ def _quick_reference(text: str) -> dict[str | None, set[str]]:
 
 
 def _subparsers() -> argparse._SubParsersAction:
-    parser = _build_parser()
+    parser = build_parser()
     return next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
 
 
@@ -93,7 +93,7 @@ def test_readme_cli_reference_matches_the_parser():
     unknown_subcommands = {sub for sub in named if sub is not None} - set(subparsers.choices)
     assert not unknown_subcommands
     # AND every option named for a subcommand is in that subcommand's --help
-    global_help = _build_parser().format_help()
+    global_help = build_parser().format_help()
     for sub, options in named.items():
         help_text = global_help if sub is None else subparsers.choices[sub].format_help()
         accepted = set(LONG_OPTION.findall(help_text))

@@ -18,6 +18,10 @@ from snds import export
 from snds.cli import main
 from snds.data import Demonstration, Demonstrations
 from snds.data.poses import with_synthetic_orientations
+from snds.export import onnx_ops
+from snds.export.fused import fusable
+from snds.export.graph import NUMPY_DTYPES, policy_copy, top_speed
+from snds.export.writers import quiet_exporter
 from snds.models import save_model
 from snds.policy import PolicyConfig
 from snds.recipes import RECIPES
@@ -96,7 +100,7 @@ def test_float64_onnx_equals_the_library_on_10000_states(policy, onnx64) -> None
         library = policy.to(torch.float64)(torch.as_tensor(x)).numpy()
     policy.to(torch.float32)
     # THEN they agree to 1e-5 of max(|velocity|, top speed) state by state (in fact ~1e-13)
-    scale = np.maximum(np.linalg.norm(library, axis=1), export._top_speed(policy))
+    scale = np.maximum(np.linalg.norm(library, axis=1), top_speed(policy))
     assert np.all(np.linalg.norm(exported - library, axis=1) / scale <= 1e-5)
     assert np.isfinite(exported).all()
 
@@ -203,7 +207,7 @@ def test_pt2_round_trip_is_exact_and_pickle_free(tmp_path: Path, dim: int) -> No
     demos = spiral_demos(dim=dim)
     policy = make_policy(demos, config=SMALL, dtype=torch.float64).eval()
     path = export.export_pt2(policy, tmp_path / "policy.pt2", dtype=torch.float64)
-    assert export.pickled_entries(path) == []
+    assert export.refused_entries(path) == []
     check = export.verify(path, policy, samples=2_000)
     # (the fused graph sums in another order than the library: 3e-12 measured)
     assert check.passed and check.max_error <= 1e-10
@@ -236,19 +240,103 @@ def test_unconstrained_policy_exports_too(tmp_path: Path) -> None:
     assert check.passed and check.max_error <= 1e-12
 
 
-def test_pt2_with_a_pickled_entry_is_refused(tmp_path: Path) -> None:
-    policy = make_policy(spiral_demos(), config=SMALL).eval()
-    good = export.export_pt2(policy, tmp_path / "good.pt2")
-    bad = tmp_path / "bad.pt2"
+def _rewritten(good: Path, bad: Path, change) -> Path:
+    """A copy of the archive ``good`` whose entries pass through ``change(name, data)``, which
+    returns the (name, data) pairs to write instead (none: the entry is dropped)."""
     with zipfile.ZipFile(good) as source, zipfile.ZipFile(bad, "w") as target:
         for item in source.infolist():
-            data = source.read(item)
-            if item.filename.endswith("sample_inputs/model.pt"):
-                data = b"\x80\x04pickled"
-            target.writestr(item, data)
-    assert export.pickled_entries(bad)
-    with pytest.raises(export.ExportError, match="pickled"):
+            for name, data in change(item.filename, source.read(item)):
+                target.writestr(name, data)
+    return bad
+
+
+@pytest.fixture(scope="module")
+def good_pt2(tmp_path_factory) -> Path:
+    policy = make_policy(spiral_demos(), config=SMALL).eval()
+    return export.export_pt2(policy, tmp_path_factory.mktemp("pt2") / "good.pt2")
+
+
+def test_pt2_with_a_pickled_entry_is_refused(good_pt2: Path, tmp_path: Path) -> None:
+    def pickle_inputs(name, data):
+        yield name, b"\x80\x04pickled" if name.endswith("sample_inputs/model.pt") else data
+
+    bad = _rewritten(good_pt2, tmp_path / "bad.pt2", pickle_inputs)
+    assert export.refused_entries(bad) == ["archive/data/sample_inputs/model.pt"]
+    with pytest.raises(export.ExportError, match="sample_inputs/model.pt.*refused"):
         export.load_pt2(bad)
+
+
+def _config_change(edit):
+    """A change of the archive's weights config by ``edit(entry)`` for every tensor."""
+
+    def change(name, data):
+        if name.endswith("_weights_config.json"):
+            config = json.loads(data)
+            for entry in config["config"].values():
+                edit(entry)
+            data = json.dumps(config).encode()
+        yield name, data
+
+    return change
+
+
+@pytest.mark.parametrize(
+    ("case", "change", "refused"),
+    [
+        # a tensor stored pickled
+        (
+            "pickled tensor",
+            _config_change(lambda entry: entry.update(use_pickle=True)),
+            "model_weights_config.json:",
+        ),
+        # a layout whose config no longer says how tensors are stored: refused, not read
+        (
+            "no use_pickle key",
+            _config_change(lambda entry: entry.pop("use_pickle")),
+            "model_weights_config.json:",
+        ),
+        # an entry of a kind an snds export does not write
+        (
+            "unknown entry",
+            lambda name, data: (
+                [(name, data)]
+                + ([("archive/data/extra/blob.pkl", b"x")] if name.endswith("byteorder") else [])
+            ),
+            "archive/data/extra/blob.pkl",
+        ),
+        # raw bytes that no config names
+        (
+            "unnamed tensor bytes",
+            lambda name, data: (
+                [(name, data)]
+                + (
+                    [("archive/data/weights/weight_999", b"\0" * 8)]
+                    if name.endswith("byteorder")
+                    else []
+                )
+            ),
+            "archive/data/weights/weight_999",
+        ),
+    ],
+)
+def test_pt2_with_anything_an_export_does_not_write_is_refused(
+    good_pt2: Path, tmp_path: Path, case: str, change, refused: str
+) -> None:
+    # GIVEN the archive of an snds export, changed in one way torch.export could store pickles
+    # or a future layout could differ
+    assert export.refused_entries(good_pt2) == []
+    bad = _rewritten(good_pt2, tmp_path / "bad.pt2", change)
+    # THEN the check names the entry and loading refuses the file before torch reads it
+    assert any(refused in entry for entry in export.refused_entries(bad)), case
+    with pytest.raises(export.ExportError, match="refused"):
+        export.load_pt2(bad)
+
+
+def test_a_file_that_is_not_an_archive_is_refused(tmp_path: Path) -> None:
+    path = tmp_path / "policy.pt2"
+    path.write_bytes(b"not a zip")
+    with pytest.raises(export.ExportError, match="not a .pt2 archive"):
+        export.load_pt2(path)
 
 
 def test_cli_export_writes_the_file_and_its_check(tmp_path: Path, capsys) -> None:
@@ -367,7 +455,7 @@ def test_float32_pose_onnx_passes_the_check(pose_policy, tmp_path: Path) -> None
 
 def test_pose_pt2_round_trip_is_exact(pose_policy, tmp_path: Path) -> None:
     path = export.export_pt2(pose_policy, tmp_path / "pose.pt2", dtype=torch.float64)
-    assert export.pickled_entries(path) == []
+    assert export.refused_entries(path) == []
     check = export.verify(path, pose_policy, samples=2_000)
     assert check.passed and check.max_error <= 1e-12
 
@@ -392,15 +480,15 @@ def test_onnx_atan2_equals_torch_in_every_quadrant(tmp_path: Path, dtype) -> Non
     special = [0.0, 1.0, -1.0, 1e-30, -1e-30, 1e30, -1e30]
     pairs = np.array([(a, b) for a in special for b in special])
     scales = 10.0 ** rng.uniform(-20, 20, size=(2_000, 1))
-    x = np.concatenate([pairs, scales * rng.normal(size=(2_000, 2))]).astype(export._NUMPY[dtype])
+    x = np.concatenate([pairs, scales * rng.normal(size=(2_000, 2))]).astype(NUMPY_DTYPES[dtype])
     program = torch.export.export(
         Atan2(), (torch.as_tensor(x[:4]),), dynamic_shapes={"x": {0: torch.export.Dim("b")}}
     )
-    with export._quiet_exporter():
+    with quiet_exporter():
         model = torch.onnx.export(
             program,
             dynamo=True,
-            custom_translation_table={torch.ops.aten.atan2.default: export._atan2_onnx},
+            custom_translation_table={torch.ops.aten.atan2.default: onnx_ops.atan2},
         ).model_proto
     import onnx
 
@@ -482,7 +570,7 @@ def test_default_policy_exports_as_the_fused_graph(tmp_path: Path, dim: int) -> 
     import onnx
 
     policy = _default_policy(dim)
-    assert export._fusable(policy)
+    assert fusable(policy)
     exact = export.export_onnx(policy, tmp_path / "p64.onnx", dtype=torch.float64)
     rounded = export.export_onnx(policy, tmp_path / "p32.onnx", dtype=torch.float32)
     # THEN the float64 graph is the library to 1e-9 of the top speed on 4,000 states out to
@@ -514,7 +602,7 @@ def test_exported_field_is_zero_at_the_target(tmp_path: Path, fmt: str, dtype) -
     target = np.asarray(policy.normalization.center, dtype=np.float64)[None]
     # THEN V is 0 there, and the exported velocity is exactly 0, in a batch too
     with torch.no_grad():
-        value, _ = export._copy(policy, torch.float64).lyapunov.value_and_grad(
+        value, _ = policy_copy(policy, torch.float64).lyapunov.value_and_grad(
             torch.zeros(1, 2, dtype=torch.float64)
         )
     assert float(value[0]) == 0.0
@@ -523,5 +611,5 @@ def test_exported_field_is_zero_at_the_target(tmp_path: Path, fmt: str, dtype) -
     assert np.all(run(batch)[-1] == 0.0) and np.all(run(batch)[:-1] != 0.0)
     # and one extent in 1e6 from it the velocity is of that order (top speed: about 1)
     near = target + 1e-6 * policy.normalization.length
-    speed = np.linalg.norm(run(near)) / export._top_speed(policy)
+    speed = np.linalg.norm(run(near)) / top_speed(policy)
     assert speed < 1e-3

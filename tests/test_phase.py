@@ -14,7 +14,7 @@ from snds.cli import main
 from snds.data import DataSource, Normalization, no_split
 from snds.errors import ConfigError, DataError
 from snds.evaluate import evaluate
-from snds.method import make_policy
+from snds.methods import make_policy
 from snds.models import load_model, save_model
 from snds.phase import (
     START_REFERENCES,

@@ -12,8 +12,8 @@ import pytest
 import scipy.io
 from scipy.spatial.transform import Rotation
 
-from snds.cli import _build_parser
-from snds.cli._common import _data_source
+from snds.cli import build_parser
+from snds.cli._common import data_source
 from snds.data import DataSource, ReadOptions, load_recording
 from snds.data.arrays import project_rotations
 from snds.data.options import DataWarning
@@ -226,8 +226,8 @@ def test_the_options_go_through_the_flags_and_the_record(tmp_path):
     path = tmp_path / "demos.npy"
     np.save(path, wxyz(two_demos()) * [10, 10, 10, 1, 1, 1, 1])
     flags = ["--rate", "25", "--quaternion-order", "wxyz", "--length-unit", "dm"]
-    args = _build_parser().parse_args(["train", "--data", str(path), *flags, "--trim-idle", "0.01"])
-    source = _data_source(args)
+    args = build_parser().parse_args(["train", "--data", str(path), *flags, "--trim-idle", "0.01"])
+    source = data_source(args)
     assert (source.rate, source.quaternion_order, source.length_unit) == (25.0, "wxyz", "dm")
     assert source.poses
     record = json.loads(json.dumps(source.record()))

@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 import torch
 
-from snds import c_check
 from snds.cli import main
 from snds.data import DataSource
+from snds.export import c_check
 from snds.models import load_model
 from snds.phase import start_rule
 from snds.ros import NodeConfig, make_node

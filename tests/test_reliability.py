@@ -242,7 +242,7 @@ def test_resume_gives_the_same_weights_and_history_bit_for_bit(task, tmp_path, m
 def test_a_pose_fit_resumes_bit_for_bit(tmp_path, monkeypatch):
     # GIVEN a pose task (a spiral lifted to SE(3)) and a fit killed after 25 steps
     from snds.data.poses import with_synthetic_orientations
-    from snds.method import make_policy as make_any_policy
+    from snds.methods import make_policy as make_any_policy
 
     poses = with_synthetic_orientations(spiral_demos(count=2, samples=150), seed=1)
     split = split_samples(poses, test_fraction=0.2, seed=0)

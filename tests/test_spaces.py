@@ -12,7 +12,7 @@ import torch
 from snds.data import no_split
 from snds.data.poses import with_synthetic_orientations
 from snds.evaluate import accuracy
-from snds.method import make_policy
+from snds.methods import make_policy
 from snds.models import load_model, save_model
 from snds.policy import float64_copy
 from snds.spaces import SE3, Euclidean, Space

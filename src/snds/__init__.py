@@ -23,7 +23,7 @@ from snds.data import (
 from snds.data.poses import load_poses
 from snds.errors import DataError, ModelFileError, SNDSError
 from snds.evaluate import Evaluation
-from snds.method import make_policy
+from snds.methods import make_policy
 from snds.models import load_model, save_model
 from snds.phase import Phase, start_state
 from snds.policy import Policy, PolicyConfig, StablePolicy, project

@@ -31,8 +31,8 @@ from snds.data.files import LOADERS
 from snds.data.poses import is_pose_file
 from snds.errors import DataError, SNDSError
 from snds.evaluate import evaluate
+from snds.fitting import Fitted
 from snds.io import atomic_write
-from snds.method import Fitted
 from snds.methods import METHODS, get_method
 from snds.models import load_model
 from snds.parallel import starmap_unordered, torch_threads
@@ -390,7 +390,7 @@ def run_task(task: Task, settings: SweepSettings) -> TaskOutput:
 
 def run_batch(tasks: Sequence[Task], settings: SweepSettings) -> list[TaskOutput]:
     """Runs tasks of one method as :func:`run_task` runs each, with their fits as one stacked
-    model (:meth:`snds.method.NeuralMethod.fit_many`; a single task is fitted alone).
+    model (:meth:`snds.methods.NeuralMethod.fit_many`; a single task is fitted alone).
 
     The fits equal separate ones up to rounding, which training amplifies (see
     :mod:`snds.batched`). Each row's ``train_seconds`` and ``train_cpu_seconds`` are its

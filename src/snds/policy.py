@@ -22,6 +22,18 @@ from snds.errors import ConfigError
 from snds.nn import MLP, EuclideanizingFlow, Lyapunov, WarpedLyapunov
 from snds.spaces import Euclidean, Phased, Space
 
+__all__ = [
+    "DEFAULT_WARP_LAYERS",
+    "RECTIFIERS",
+    "FieldTerms",
+    "LyapunovFunction",
+    "Policy",
+    "PolicyConfig",
+    "StablePolicy",
+    "float64_copy",
+    "project",
+]
+
 #: Coupling layers of V's warp when :attr:`PolicyConfig.warp_layers` is None and n >= 2.
 DEFAULT_WARP_LAYERS = 4
 
@@ -44,7 +56,7 @@ def _softplus(u: Tensor, sharpness: float = 50.0) -> Tensor:
 RECTIFIERS = {"relu": _relu, "softplus": _softplus}
 
 
-def project(f: Tensor, grad_v: Tensor, decay: Tensor, rectifier: str = "relu") -> Tensor:
+def project(f: Tensor, grad_v: Tensor, decay: Tensor, *, rectifier: str = "relu") -> Tensor:
     r"""Removes the part of a velocity field that would let V decrease too slowly.
 
     .. math:: \pi = f - \nabla V \, \frac{r(\nabla V^\top f + a)}{\|\nabla V\|^2}
@@ -402,13 +414,18 @@ class Policy(nn.Module, ABC):
 
 
 class StablePolicy(Policy):
-    r"""A velocity field :math:`\pi(x)` in user units that provably reaches the target.
+    r"""A velocity field :math:`\pi(x)` in user units that provably reaches the target, or,
+    with ``config.stable`` False, the unconstrained network of behavioural cloning, which
+    has no such guarantee.
 
     Internally it works in model coordinates (target at 0, extent 1, top speed 1; see
     :class:`~snds.data.Normalization`): :math:`\pi` there is :func:`project` applied to the
     nominal :math:`f(x) - f(0)` (so that the target is an equilibrium) with the
     :class:`~snds.nn.Lyapunov` function :math:`V` (a :class:`~snds.nn.WarpedLyapunov` with
-    ``warp_layers`` > 0) and decay :math:`a \ge \rho V`.
+    ``warp_layers`` > 0) and decay :math:`a \ge \rho V`. Behavioural cloning
+    (``config.stable`` False, :data:`snds.methods.BC`) skips the projection: :math:`\pi` is
+    :math:`f(x) - f(0)`, which may stop short of the target, circle or diverge; it keeps V's
+    unused weights so that both share one file layout.
 
     Arguments:
         dim: State dimension n.
@@ -551,7 +568,9 @@ class StablePolicy(Policy):
         if not self.stable:
             return FieldTerms(f, None, None, None)
         v, grad_v = self.lyapunov.value_and_grad(x)
-        return FieldTerms(project(f, grad_v, self.decay(v, x), self.config.rectifier), f, v, grad_v)
+        return FieldTerms(
+            project(f, grad_v, self.decay(v, x), rectifier=self.config.rectifier), f, v, grad_v
+        )
 
     def _field_and_value(self, z: Tensor) -> tuple[Tensor, Tensor]:
         terms = self.field_terms(z)

@@ -28,9 +28,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from snds.c_check import compiler, load_c
-from snds.c_export import export_c
 from snds.errors import ConfigError
+from snds.export.c import export_c
+from snds.export.c_check import compiler, load_c
 from snds.phase import PhaseKeeper, StartRule
 from snds.policy import Policy, float64_copy
 from snds.rollout import safe_velocity

@@ -27,7 +27,7 @@ from snds.checkpoint import TrainResult
 from snds.data import DataSource, Demonstrations, Split, no_split, split_demos, split_samples
 from snds.errors import ConfigError
 from snds.evaluate import Evaluation, evaluate
-from snds.method import make_policy
+from snds.methods import make_policy
 from snds.plotting import plot_all
 from snds.policy import Policy
 from snds.recipes import RECIPES, Recipe

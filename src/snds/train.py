@@ -36,7 +36,7 @@ from snds.checkpoint import (
     save_checkpoint,
 )
 from snds.data.demonstrations import Demonstrations, Split
-from snds.errors import ConfigError, DataError, SNDSError
+from snds.errors import ConfigError, DataError, TrainingError
 from snds.losses import Samples, make_samples, step_loss
 from snds.optim import adam, adam_step, clip_gradients
 from snds.parallel import torch_threads
@@ -59,10 +59,6 @@ __all__ = [
     "train_loop",
     "training_samples",
 ]
-
-
-class TrainingError(SNDSError, RuntimeError):
-    """Training diverged even after restarting from its last good state."""
 
 
 #: The warm-up lasts at least this many steps (or a fifth of a shorter fit): Adam's first

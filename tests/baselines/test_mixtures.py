@@ -12,9 +12,7 @@ import torch
 
 from snds.data import Demonstration, Demonstrations
 from snds.data.demonstrations import split_samples
-from snds.method import Method
-from snds.methods import METHODS, POLICY_KINDS
-from snds.models import load_model, save_model
+from snds.methods import METHODS, POLICY_KINDS, Method
 from snds.stability import CheckConfig, check_stability
 
 from conftest import held_out_relative_mse, lie_derivative_eigenvalues, spiral_demos
@@ -75,18 +73,6 @@ def test_decrease_and_responsibilities_hold_far_from_the_data(fitted):
     torch.testing.assert_close(v, torch.einsum("bi,ij,bj->b", x, policy.lyapunov.matrix, x))
     lhs = (grad_v * xdot).sum(-1)
     assert (lhs <= -policy.decay(v, x) + 1e-9 * grad_v.norm(dim=-1) * xdot.norm(dim=-1)).all()
-
-
-def test_save_load_round_trip_gives_identical_outputs(fitted, tmp_path):
-    name, result = fitted
-    save_model(result.policy, tmp_path / "model", extra=result.record)
-    loaded, description = load_model(tmp_path / "model")
-    assert type(loaded) is POLICY_KINDS[name] and description["kind"] == name
-    assert loaded.config == result.policy.config
-    x = torch.randn(200, 2, dtype=torch.float64)
-    with torch.no_grad():
-        torch.testing.assert_close(loaded(x), result.policy(x), rtol=0, atol=0)
-    assert loaded.lyapunov.quadratic == result.policy.lyapunov.quadratic
 
 
 def test_same_seed_gives_the_same_fit(fitted, spiral_split):

@@ -12,7 +12,6 @@ from snds.data import Demonstration, Demonstrations, Normalization
 from snds.data.demonstrations import Split, split_samples
 from snds.errors import DataError
 from snds.methods import METHODS, POLICY_KINDS
-from snds.models import load_model, save_model
 from snds.stability import CheckConfig, check_stability
 from snds.train import TrainConfig
 
@@ -197,14 +196,3 @@ def test_same_seed_gives_the_same_fit():
     first, second = (method.fit(demos, split, seed=5).policy for _ in range(2))
     for (name, a), (_, b) in zip(first.state_dict().items(), second.state_dict().items()):
         assert torch.equal(a, b), name
-
-
-def test_save_and_load_give_identical_outputs(trained, tmp_path):
-    policy, demos, _ = trained
-    save_model(policy, tmp_path / "model")
-    loaded, description = load_model(tmp_path / "model")
-    assert description["kind"] == "sdsef" and isinstance(loaded, SDSEFPolicy)
-    x = torch.as_tensor(demos.positions()) * 3.0
-    x = x.to(next(policy.parameters()).dtype)
-    with torch.no_grad():
-        assert torch.equal(policy.eval()(x), loaded(x))

@@ -170,7 +170,7 @@ def test_filled_gaps_make_each_recording_a_continuous_tube(name):
 
 
 def test_fill_gaps_puts_back_the_samples_a_recording_dropped():
-    from snds.data.files import fill_gaps
+    from snds.data.gaps import fill_gaps
 
     # GIVEN an accelerating motion along a parabola, sampled at 0.01 s, 30 samples missing
     times = 0.01 * np.arange(200)
@@ -189,7 +189,7 @@ def test_fill_gaps_puts_back_the_samples_a_recording_dropped():
 
 
 def test_fill_gaps_changes_nothing_without_a_gap():
-    from snds.data.files import fill_gaps
+    from snds.data.gaps import fill_gaps
 
     demo = quadratic_demos(count=1, uneven=False)[0]
     got_positions, got_velocities, got_times = fill_gaps(demo.positions, demo.velocities, 0.01)

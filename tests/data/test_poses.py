@@ -164,7 +164,7 @@ def test_pick_box_ends_at_two_places():
 
 
 def test_a_recording_gap_gets_the_time_its_velocities_need():
-    from snds.data.files import retime_gaps
+    from snds.data.gaps import retime_gaps
 
     # GIVEN a uniform motion at 1 unit/s sampled at 0.01 s, with 30 samples missing
     times = 0.01 * np.arange(200)

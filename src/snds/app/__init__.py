@@ -8,6 +8,7 @@ reads.
 """
 
 from snds.app.server import create_app, serve
-from snds.app.strokes import LIMITS, Limits, RequestError
+from snds.app.strokes import LIMITS, Limits
+from snds.errors import RequestError
 
 __all__ = ["LIMITS", "Limits", "RequestError", "create_app", "serve"]

@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from snds.data import MAX_END_SPREAD, Demonstrations, load_demonstrations
-from snds.errors import DataError
+from snds.errors import DataError, RequestError
 from snds.io import atomic_write
 
 __all__ = [
@@ -40,20 +40,6 @@ __all__ = [
 ]
 
 CSV_HEADER = "demo,t,x1,x2"
-
-
-class RequestError(Exception):
-    """A request the server refuses: an HTTP status (4xx) and a one-line reason.
-
-    Arguments:
-        status: The HTTP status code.
-        reason: What is wrong, in one line.
-    """
-
-    def __init__(self, status: int, reason: str) -> None:
-        super().__init__(reason)
-        self.status = status
-        self.reason = " ".join(reason.split())
 
 
 @dataclass(frozen=True)

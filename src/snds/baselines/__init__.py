@@ -1,5 +1,5 @@
 """Baselines the benchmark compares SNDS with, each a :class:`~snds.policy.Policy` and a
-:class:`~snds.method.Method`.
+:class:`~snds.methods.Method`.
 
 * :mod:`snds.baselines.lpvds`: LPV-DS (Figueroa & Billard, CoRL 2018), a Gaussian-mixture
   blend of linear systems with one shared quadratic Lyapunov function: a physically-consistent
@@ -12,3 +12,5 @@
 Their optional dependencies (scikit-learn, cvxpy) are imported only when a fit runs
 (``pip install 'snds[baselines]'``); loading and evaluating a saved model needs neither.
 """
+
+__all__: list[str] = []

@@ -83,8 +83,22 @@ from snds.baselines.mixture import (
 )
 from snds.data.demonstrations import Demonstrations, Normalization, Split
 from snds.errors import SNDSError
+from snds.fitting import Fitted
 from snds.losses import make_samples
-from snds.method import Fitted, Method
+from snds.spaces import Euclidean, Space
+
+__all__ = [
+    "FEATURES",
+    "LPVDS",
+    "LPVDSPolicy",
+    "fit_linear_systems",
+    "fit_lyapunov_matrix",
+    "lyapunov_matrix_from_factor",
+    "lyapunov_violation",
+    "physically_consistent_mixture",
+    "position_bic",
+    "similarity",
+]
 
 
 class LPVDSPolicy(MixtureLinearPolicy):
@@ -94,21 +108,10 @@ class LPVDSPolicy(MixtureLinearPolicy):
     numbers with :math:`P \succ 0` and :math:`A_k^\top P + P A_k \prec 0` verified in float64,
     and :meth:`decay` returns the verified rate, :math:`\dot V \le -c \|x\|^2`.
 
-    Arguments:
-        dim: State dimension n.
-        normalization: The task's affine map of space and time.
-        config: The number of components.
-        seed: Unused (nothing is random before the fit); kept for the common signature.
+    Built as :class:`~snds.baselines.mixture.MixtureLinearPolicy` is.
     """
 
     kind = "lpvds"
-    config_class = MixtureConfig
-
-    def __init__(
-        self, *, dim: int, normalization: Normalization, config: MixtureConfig, seed: int = 0
-    ) -> None:
-        super().__init__(dim=dim, normalization=normalization, components=config.components)
-        self.config = config
 
 
 def _solve(problem: Any, solver: str) -> str:
@@ -374,7 +377,7 @@ FEATURES = ("physically_consistent", "position_velocity", "position")
 
 
 @dataclass(frozen=True)
-class LPVDS(Method):
+class LPVDS:
     """LPV-DS fitted by a physically-consistent mixture, a data-driven P and an
     LMI-constrained least squares (the three steps of the module docstring).
 
@@ -403,6 +406,7 @@ class LPVDS(Method):
     name: str = "lpvds"
     description: str = "LPV-DS: Gaussian-mixture blend of linear systems, shared V = x'Px (LMIs)"
     has_lyapunov: ClassVar[bool] = True
+    spaces: ClassVar[tuple[type[Space], ...]] = (Euclidean,)
     components: int | None = None
     max_components: int = 20
     eps: float = 0.05

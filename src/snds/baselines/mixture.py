@@ -37,6 +37,23 @@ from snds.data.demonstrations import Normalization
 from snds.errors import SNDSError
 from snds.policy import Policy
 
+__all__ = [
+    "MixtureConfig",
+    "MixtureFit",
+    "MixtureLinearPolicy",
+    "QuadraticLyapunov",
+    "blend",
+    "design_matrix",
+    "fit_mixture",
+    "log_responsibilities",
+    "matrices_from_coefficients",
+    "precision_factor",
+    "require",
+    "single_threaded",
+    "stability_margin",
+    "subsample",
+]
+
 
 def require(module: str) -> ModuleType:
     """Imports a module of the ``baselines`` extra, or says how to install it."""
@@ -197,11 +214,18 @@ class MixtureLinearPolicy(Policy):
     Arguments:
         dim: State dimension n.
         normalization: The task's affine map of space and time.
-        components: Number of mixture components K.
+        config: The number of mixture components K.
+        seed: Unused (nothing is random before the fit); kept for the common signature.
     """
 
-    def __init__(self, *, dim: int, normalization: Normalization, components: int) -> None:
+    config_class = MixtureConfig
+
+    def __init__(
+        self, *, dim: int, normalization: Normalization, config: MixtureConfig, seed: int = 0
+    ) -> None:
         super().__init__(dim=dim, normalization=normalization)
+        self.config = config
+        components = config.components
         if components < 1:
             raise ValueError(f"components must be >= 1, got {components}")
         eye = torch.eye(dim).expand(components, dim, dim)

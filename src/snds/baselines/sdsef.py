@@ -41,10 +41,13 @@ from torch import Tensor, nn
 
 from snds.data.demonstrations import Demonstrations, Normalization, Split
 from snds.errors import DataError
-from snds.method import Fitted, Method, train_network
+from snds.fitting import Fitted, train_network
 from snds.nn.flow import EuclideanizingFlow, LayerCache
 from snds.policy import Policy
+from snds.spaces import Euclidean, Space
 from snds.train import TrainConfig
+
+__all__ = ["SDSEF", "FlowLyapunov", "SDSEFConfig", "SDSEFPolicy", "SpeedGain"]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -263,7 +266,7 @@ class SDSEFPolicy(Policy):
 
 
 @dataclass(frozen=True)
-class SDSEF(Method):
+class SDSEF:
     """SDS-EF trained on velocities by :func:`snds.train.fit` (MSE, as the paper).
 
     The optimiser of SNDS (:class:`~snds.train.TrainConfig`: Adam with warm-up and cosine
@@ -288,6 +291,7 @@ class SDSEF(Method):
         )
     )
     has_lyapunov: ClassVar[bool] = True
+    spaces: ClassVar[tuple[type[Space], ...]] = (Euclidean,)
 
     def fit(
         self,
@@ -298,7 +302,8 @@ class SDSEF(Method):
         steps: int | None = None,
         progress: bool = False,
     ) -> Fitted:
-        """Fits an :class:`SDSEFPolicy` to the training velocities (see :meth:`Method.fit`)."""
+        """Fits an :class:`SDSEFPolicy` to the training velocities (see
+        :meth:`snds.methods.Method.fit`)."""
         steps = self.train_config.steps if steps is None else steps
         config = replace(self.train_config, seed=seed, steps=steps)
         policy = SDSEFPolicy(
@@ -307,4 +312,4 @@ class SDSEF(Method):
             config=self.policy_config,
             seed=seed,
         )
-        return train_network(policy, demos, split, config, progress=progress)
+        return train_network(policy, demos, split, config=config, progress=progress)

@@ -60,8 +60,11 @@ from snds.baselines.mixture import (
     subsample,
 )
 from snds.data.demonstrations import Demonstrations, Normalization, Split
+from snds.fitting import Fitted
 from snds.losses import make_samples
-from snds.method import Fitted, Method
+from snds.spaces import Euclidean, Space
+
+__all__ = ["SEDS", "SEDSPolicy"]
 
 
 class SEDSPolicy(MixtureLinearPolicy):
@@ -71,21 +74,10 @@ class SEDSPolicy(MixtureLinearPolicy):
     when fitted by :class:`SEDS`, :meth:`decay` returns the verified rate
     :math:`c \ge 2\epsilon` of :math:`\dot V \le -c \|x\|^2`.
 
-    Arguments:
-        dim: State dimension n.
-        normalization: The task's affine map of space and time.
-        config: The number of components.
-        seed: Unused (nothing is random before the fit); kept for the common signature.
+    Built as :class:`~snds.baselines.mixture.MixtureLinearPolicy` is.
     """
 
     kind = "seds"
-    config_class = MixtureConfig
-
-    def __init__(
-        self, *, dim: int, normalization: Normalization, config: MixtureConfig, seed: int = 0
-    ) -> None:
-        super().__init__(dim=dim, normalization=normalization, components=config.components)
-        self.config = config
 
 
 def _project_stable(matrices: np.ndarray, eps: float) -> tuple[np.ndarray, np.ndarray]:
@@ -236,7 +228,7 @@ def _optimise(params: _SEDSParameters, x: Tensor, v: Tensor, iterations: int) ->
 
 
 @dataclass(frozen=True)
-class SEDS(Method):
+class SEDS:
     """SEDS fitted by L-BFGS on the velocity MSE, stable by construction.
 
     Attributes:
@@ -255,6 +247,7 @@ class SEDS(Method):
     name: str = "seds"
     description: str = "SEDS: Gaussian mixture regression of stable linear systems (V = |x|^2)"
     has_lyapunov: ClassVar[bool] = True
+    spaces: ClassVar[tuple[type[Space], ...]] = (Euclidean,)
     components: int | None = None
     max_components: int = 15
     eps: float = 0.02

@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from snds.certify.certificate import CertificateError
 from snds.certify.model import PolicyModel
+from snds.errors import CertificateError
 
 __all__ = ["ArbModel", "Balls", "cell_box", "flint_module", "meet", "prove_cell", "prove_split"]
 

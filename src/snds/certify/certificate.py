@@ -22,7 +22,7 @@ import torch
 
 from snds.certify.model import PolicyModel
 from snds.certify.search import Search, prove
-from snds.errors import SNDSError
+from snds.errors import CertificateError
 from snds.io import atomic_write
 from snds.policy import Policy
 
@@ -42,10 +42,6 @@ __all__ = [
 FORMAT = "snds-certificate/1"
 #: Relative error allowed to a deployed float64 step (its rounding is ~1e-13 relative).
 ETA = {"float64": 1e-6, "float32": 1e-3}
-
-
-class CertificateError(SNDSError):
-    """A certificate file that is malformed or does not match its model."""
 
 
 @dataclass(frozen=True, kw_only=True)

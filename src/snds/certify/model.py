@@ -20,7 +20,7 @@ from snds.certify import affine, jets, quadratic
 from snds.certify import interval as ia
 from snds.certify.interval import Iv
 from snds.certify.jets import Jet
-from snds.errors import SNDSError
+from snds.errors import NotCertifiable
 from snds.nn import MLP, FourierFeatures, WarpedLyapunov
 from snds.policy import Policy, StablePolicy, float64_copy
 
@@ -36,10 +36,6 @@ __all__ = [
 
 #: The ICNN activations this module bounds, with their linear slope c (s = c u + (1-c) sp(u)).
 _ICNN_SLOPES = {"smooth_leaky": 0.1, "softplus": 0.0}
-
-
-class NotCertifiable(SNDSError):
-    """A policy that this certificate does not cover (the message says why)."""
 
 
 @dataclass(frozen=True, eq=False)

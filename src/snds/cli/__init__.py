@@ -16,19 +16,19 @@ from collections.abc import Callable, Sequence
 import torch
 
 from snds.cli import app, benchmark, evaluate, export, plot, ros, simulate, train, verify
-from snds.cli.train import _policy_config
+from snds.cli.train import policy_config
 from snds.data.options import DataWarning
 from snds.errors import SNDSError
 from snds.run import RunWarning
 from snds.threads import fastest_threads
 
-__all__ = ["_build_parser", "_policy_config", "main"]
+__all__ = ["build_parser", "main", "policy_config"]
 
 #: The subcommands, in the order ``snds --help`` lists them.
 COMMANDS = (train, evaluate, plot, benchmark, simulate, export, verify, ros, app)
 
 
-def _build_parser() -> argparse.ArgumentParser:
+def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="snds", description="Globally stable neural motion policies from demonstrations."
     )
@@ -49,7 +49,7 @@ def _build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Runs the command line; returns the exit code (2 for bad input)."""
-    parser = _build_parser()
+    parser = build_parser()
     args = parser.parse_args(argv)
     if args.threads is not None and args.threads < 1:
         parser.error("--threads must be >= 1")

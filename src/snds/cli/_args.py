@@ -6,12 +6,14 @@ import argparse
 import math
 from pathlib import Path
 
-from snds.data.files import GAP_MODES
+from snds.data.gaps import GAP_MODES
 from snds.data.options import LENGTH_UNITS, QUATERNION_ORDERS
 from snds.stability import ROLLOUTS, SAMPLES
 
+__all__ = ["check_arguments", "data_arguments", "index_list", "obstacle_arguments"]
 
-def _index_list(text: str) -> list[int]:
+
+def index_list(text: str) -> list[int]:
     try:
         return [int(part) for part in text.split(",") if part.strip()]
     except ValueError:
@@ -21,7 +23,7 @@ def _index_list(text: str) -> list[int]:
 
 
 def _demo_choice(text: str) -> int | list[int]:
-    return _index_list(text) if "," in text else _index_list(text)[0]
+    return index_list(text) if "," in text else index_list(text)[0]
 
 
 def _end_spread(text: str) -> float:
@@ -34,7 +36,7 @@ def _end_spread(text: str) -> float:
     return value
 
 
-def _data_arguments(parser: argparse.ArgumentParser, *, required: bool) -> None:
+def data_arguments(parser: argparse.ArgumentParser, *, required: bool) -> None:
     source = parser.add_mutually_exclusive_group(required=required)
     source.add_argument("--motion", help="a LASA handwriting motion, e.g. Sine")
     source.add_argument(
@@ -144,7 +146,7 @@ def _reading_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def _check_arguments(parser: argparse.ArgumentParser) -> None:
+def check_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--rollouts", type=int, default=ROLLOUTS, help="random starts of the stability check"
     )
@@ -156,7 +158,7 @@ def _check_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def _obstacle_arguments(parser: argparse.ArgumentParser) -> None:
+def obstacle_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--obstacle",
         action="append",

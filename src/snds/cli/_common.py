@@ -25,11 +25,25 @@ from snds.run import split_of
 from snds.spaces import SE3
 from snds.stability import CheckConfig
 
+__all__ = [
+    "READING_FIELDS",
+    "check_config",
+    "data_source",
+    "make_split",
+    "model_and_data",
+    "refuse_obstacles",
+    "scene_of",
+    "start_rule_of",
+    "summarise",
+    "summary",
+    "write_plots",
+]
+
 #: The reading options of :class:`~snds.data.DataSource` that flags of the same name set.
 READING_FIELDS = tuple(ReadOptions.__dataclass_fields__)
 
 
-def _scene(args: argparse.Namespace):
+def scene_of(args: argparse.Namespace):
     """The obstacles of ``--scene``, ``--obstacle`` and ``--workspace``; None without any."""
     if not (args.obstacle or args.workspace or args.scene):
         return None
@@ -39,7 +53,7 @@ def _scene(args: argparse.Namespace):
     return Scene(obstacles=obstacles, workspace=workspace)
 
 
-def _data_source(
+def data_source(
     args: argparse.Namespace, *, poses: bool = False, seed: int = 0, phase: Phase | None = None
 ) -> DataSource:
     """The demonstrations that ``--motion`` / ``--data``, ``--demos``, ``--max-end-spread``
@@ -62,7 +76,7 @@ def _data_source(
     )
 
 
-def _make_split(demos: Demonstrations, record: dict) -> Split:
+def make_split(demos: Demonstrations, record: dict) -> Split:
     """The split described by a ``split`` record of model.json (:func:`snds.run.split_of`)."""
     return split_of(demos, record)
 
@@ -75,14 +89,14 @@ def _check_sizes(args: argparse.Namespace) -> None:
         raise ConfigError(f"--samples must be >= 0, got {args.samples}")
 
 
-def _check_config(args: argparse.Namespace) -> CheckConfig:
+def check_config(args: argparse.Namespace) -> CheckConfig:
     """The stability check that ``--rollouts``, ``--samples``, ``--grid`` and ``--seed`` ask
     for (the library's :class:`~snds.stability.CheckConfig` for everything else)."""
     _check_sizes(args)
     return CheckConfig(rollouts=args.rollouts, samples=args.samples, grid=args.grid, seed=args.seed)
 
 
-def _model_and_data(args: argparse.Namespace) -> tuple[Policy, dict, Demonstrations]:
+def model_and_data(args: argparse.Namespace) -> tuple[Policy, dict, Demonstrations]:
     """A saved model, its record, and the demonstrations it was trained on (or those that
     ``--motion`` / ``--data`` name), in the model's space: poses for a pose model."""
     _refuse_zip(Path(args.model))
@@ -92,7 +106,7 @@ def _model_and_data(args: argparse.Namespace) -> tuple[Policy, dict, Demonstrati
     if args.motion is not None or args.data is not None:
         seed = int(recorded.get("orientation_seed", 0))
         phase = Phase.from_record(recorded["phase"]) if "phase" in recorded else None
-        source = _data_source(args, poses=poses, seed=seed, phase=phase)
+        source = data_source(args, poses=poses, seed=seed, phase=phase)
     elif "motion" in recorded or "file" in recorded:
         source = DataSource.from_record(recorded, poses=poses)
     else:
@@ -120,7 +134,7 @@ def _refuse_zip(path: Path) -> None:
     )
 
 
-def _refuse_obstacles(policy: Policy, command: str) -> None:
+def refuse_obstacles(policy: Policy, command: str) -> None:
     """Obstacles are for position models without a phase here (``snds simulate`` takes
     poses too)."""
     space = policy.space
@@ -130,7 +144,7 @@ def _refuse_obstacles(policy: Policy, command: str) -> None:
         )
 
 
-def _write_plots(
+def write_plots(
     policy: StablePolicy,
     demos: Demonstrations,
     out: Path,
@@ -143,7 +157,7 @@ def _write_plots(
     return plot_all(policy, demos, out, history=history)
 
 
-def _summarise(out: Path, metrics: dict) -> None:
+def summarise(out: Path, metrics: dict) -> None:
     """Prints the one-line summary of an evaluation (``snds train``, ``snds evaluate``)."""
     print(f"{out}: {summary(metrics)}")
 

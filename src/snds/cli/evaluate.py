@@ -5,14 +5,14 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from snds.cli._args import _check_arguments, _data_arguments, _obstacle_arguments
+from snds.cli._args import check_arguments, data_arguments, obstacle_arguments
 from snds.cli._common import (
-    _check_config,
-    _make_split,
-    _model_and_data,
-    _refuse_obstacles,
-    _scene,
-    _summarise,
+    check_config,
+    make_split,
+    model_and_data,
+    refuse_obstacles,
+    scene_of,
+    summarise,
 )
 from snds.data import Demonstrations
 from snds.evaluate import evaluate
@@ -28,26 +28,26 @@ def register(commands: argparse._SubParsersAction) -> None:
     """Adds ``snds evaluate`` to the subcommands."""
     parser = commands.add_parser("evaluate", help="evaluate a trained model")
     parser.add_argument("model", type=Path, help="model directory")
-    _data_arguments(parser, required=False)
+    data_arguments(parser, required=False)
     parser.add_argument("--seed", type=int, default=0, help="seed of the stability check")
-    _check_arguments(parser)
-    _obstacle_arguments(parser)
+    check_arguments(parser)
+    obstacle_arguments(parser)
     parser.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    scene = _scene(args)
-    check = _check_config(args)
-    policy, description, demos = _model_and_data(args)
+    scene = scene_of(args)
+    check = check_config(args)
+    policy, description, demos = model_and_data(args)
     if scene is not None:
-        _refuse_obstacles(policy, "evaluate")
+        refuse_obstacles(policy, "evaluate")
         return _evaluate_obstacles(args, policy, demos, scene)
-    split = _make_split(demos, description.get("split", {}))
+    split = make_split(demos, description.get("split", {}))
     metrics = evaluate(policy, demos, split, check=check).to_dict()
     metrics["train_seconds"] = description.get("train_result", {}).get("seconds")
     RunFolder(args.model).write_metrics(metrics)
     if not args.quiet:
-        _summarise(args.model, metrics)
+        summarise(args.model, metrics)
     return 0
 
 

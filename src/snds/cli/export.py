@@ -7,10 +7,12 @@ from pathlib import Path
 
 import torch
 
-from snds import c_check, c_export
-from snds.cli._args import _obstacle_arguments
-from snds.cli._common import _scene, start_rule_of
+from snds import export
+from snds.cli._args import obstacle_arguments
+from snds.cli._common import scene_of, start_rule_of
 from snds.errors import ConfigError
+from snds.export import c_check
+from snds.export.c import export_c
 from snds.io import to_jsonable, write_json
 from snds.models import load_model
 from snds.obstacles import ModulatedPolicy
@@ -63,14 +65,12 @@ def register(commands: argparse._SubParsersAction) -> None:
         "--samples", type=int, default=10_000, help="random states of the equality check"
     )
     parser.add_argument("--seed", type=int, default=0, help="seed of those states")
-    _obstacle_arguments(parser)
+    obstacle_arguments(parser)
     parser.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    from snds import export
-
-    scene = _scene(args)
+    scene = scene_of(args)
     policy, description = load_model(args.model)
     if scene is not None:
         policy = _with_obstacles(policy, scene)
@@ -98,7 +98,7 @@ def _run_c(args: argparse.Namespace, policy: Policy, description: dict) -> int:
         options["start_rule"] = start_rule_of(args.model, description)
     if args.rate is not None:
         options["rate"] = args.rate
-    path = c_export.export_c(policy, out, **options)
+    path = export_c(policy, out, **options)
     if c_check.compiler() is None:
         if not args.quiet:
             print(f"{path} (+ {path.with_suffix('.c').name}): not checked, no C compiler found")
@@ -110,8 +110,6 @@ def _run_c(args: argparse.Namespace, policy: Policy, description: dict) -> int:
 
 def _report(path: Path, checks: list, policy: Policy, *, quiet: bool, also=()) -> None:
     """Writes the checks beside the file, removes a file that fails one, prints the result."""
-    from snds import export
-
     write_json(
         path.with_name(path.name + ".check.json"),
         to_jsonable([c.to_dict() for c in checks] if len(checks) > 1 else checks[0].to_dict()),

@@ -5,8 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from snds.cli._args import _data_arguments, _obstacle_arguments
-from snds.cli._common import _model_and_data, _refuse_obstacles, _scene, _write_plots
+from snds.cli._args import data_arguments, obstacle_arguments
+from snds.cli._common import model_and_data, refuse_obstacles, scene_of, write_plots
 from snds.runs import RunFolder
 
 __all__ = ["register", "run"]
@@ -16,20 +16,20 @@ def register(commands: argparse._SubParsersAction) -> None:
     """Adds ``snds plot`` to the subcommands."""
     parser = commands.add_parser("plot", help="plot a trained model")
     parser.add_argument("model", type=Path, help="model directory")
-    _data_arguments(parser, required=False)
+    data_arguments(parser, required=False)
     parser.add_argument("--out", type=Path, default=None, help="folder of the PNGs")
-    _obstacle_arguments(parser)
+    obstacle_arguments(parser)
     parser.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    scene = _scene(args)
-    policy, _, demos = _model_and_data(args)
+    scene = scene_of(args)
+    policy, _, demos = model_and_data(args)
     if scene is not None:
-        _refuse_obstacles(policy, "plot")
+        refuse_obstacles(policy, "plot")
         scene.check(demos.dim, demos.target)
     history = RunFolder(args.model).read_history()
-    paths = _write_plots(policy, demos, args.out or args.model, history, scene=scene)
+    paths = write_plots(policy, demos, args.out or args.model, history, scene=scene)
     if not args.quiet:
         for path in paths:
             print(path)

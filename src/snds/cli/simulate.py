@@ -6,8 +6,8 @@ import argparse
 from pathlib import Path
 
 from snds.arrival import PATH_TOLERANCE
-from snds.cli._args import _data_arguments, _obstacle_arguments
-from snds.cli._common import _data_source, _model_and_data, _scene
+from snds.cli._args import data_arguments, obstacle_arguments
+from snds.cli._common import data_source, model_and_data, scene_of
 from snds.errors import SNDSError
 from snds.io import to_jsonable, write_json
 
@@ -22,7 +22,7 @@ def register(commands: argparse._SubParsersAction) -> None:
         "simulate", help="drive a simulated robot arm with a model (PyBullet, headless)"
     )
     parser.add_argument("model", type=Path, help="model directory")
-    _data_arguments(parser, required=False)
+    data_arguments(parser, required=False)
     parser.add_argument("--robot", choices=list(ROBOTS), default=SimConfig.robot)
     parser.add_argument(
         "--push",
@@ -74,7 +74,7 @@ def register(commands: argparse._SubParsersAction) -> None:
         default=None,
         help="speed limit of the task's positions (user units/s); the guarantee holds under it",
     )
-    _obstacle_arguments(parser)
+    obstacle_arguments(parser)
     parser.set_defaults(run=run)
 
 
@@ -114,8 +114,8 @@ def run(args: argparse.Namespace) -> int:
     from snds.sim import SimConfig, simulate
     from snds.sim.plots import plot_frames, plot_path, render_frames
 
-    scene = _scene(args)
-    policy, _, demos = _model_and_data(args)
+    scene = scene_of(args)
+    policy, _, demos = model_and_data(args)
     if not 0 <= args.start_demo < len(demos):
         raise SNDSError(f"--start-demo {args.start_demo}: there are {len(demos)} demonstrations")
     if scene is not None:
@@ -138,7 +138,7 @@ def run(args: argparse.Namespace) -> int:
     out = args.out or args.model / f"sim-{config.robot}"
     record = {
         "model": str(Path(args.model).resolve()),
-        "data": _data_source(args).record() if args.motion or args.data else None,
+        "data": data_source(args).record() if args.motion or args.data else None,
         "start_demo": args.start_demo,
         **result.to_dict(),
     }

@@ -6,15 +6,15 @@ import argparse
 import dataclasses
 from pathlib import Path
 
-from snds.cli._args import _check_arguments, _data_arguments, _index_list
-from snds.cli._common import _check_config, _data_source, _summarise
+from snds.cli._args import check_arguments, data_arguments, index_list
+from snds.cli._common import check_config, data_source, summarise
 from snds.phase import Phase
 from snds.policy import DEFAULT_WARP_LAYERS, PolicyConfig
 from snds.recipes import ARCHITECTURES, RECIPES, Recipe
 from snds.run import SplitConfig, train_run
 from snds.train import TrainConfig
 
-__all__ = ["register", "run"]
+__all__ = ["policy_config", "register", "run"]
 
 #: The preset behind the flags' defaults (:data:`snds.recipes.RECIPES`).
 DEFAULT = RECIPES["default"]
@@ -25,14 +25,14 @@ POSE = RECIPES["pose"]
 def register(commands: argparse._SubParsersAction) -> None:
     """Adds ``snds train`` to the subcommands."""
     parser = commands.add_parser("train", help="train a stable policy and evaluate it")
-    _data_arguments(parser, required=True)
+    data_arguments(parser, required=True)
     parser.add_argument("--seed", type=int, default=0, help="seed of weights and split")
     parser.add_argument("--out", type=Path, default=None, help="model directory")
     parser.add_argument("--plot", action="store_true", help="also write the plots")
     parser.add_argument("--test-fraction", type=float, default=0.2, help="held-out samples")
     parser.add_argument(
         "--test-demos",
-        type=_index_list,
+        type=index_list,
         default=None,
         help="hold out these whole demonstrations (I,J,...) instead of random samples",
     )
@@ -130,7 +130,7 @@ def register(commands: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--checkpoint-every", type=int, default=200, help="steps between checkpoints"
     )
-    _check_arguments(parser)
+    check_arguments(parser)
     parser.add_argument(
         "--se3",
         action="store_true",
@@ -154,18 +154,18 @@ def register(commands: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     phase = Phase(codes=args.phase_codes) if args.phase_codes else None
     train = _train_config(args, DEFAULT.train)
-    recipe = Recipe(policy=_policy_config(args), train=train, phase=phase)
+    recipe = Recipe(policy=policy_config(args), train=train, phase=phase)
     split = SplitConfig(
         test_fraction=args.test_fraction,
         test_demos=tuple(args.test_demos) if args.test_demos is not None else None,
     )
     result = train_run(
-        _data_source(args, poses=args.se3, seed=args.seed, phase=phase),
+        data_source(args, poses=args.se3, seed=args.seed, phase=phase),
         args.out,
         recipe=recipe,
         seed=args.seed,
         split=split,
-        check=_check_config(args),
+        check=check_config(args),
         plots=args.plot,
         resume=args.resume,
         checkpoint_every=args.checkpoint_every,
@@ -173,7 +173,7 @@ def run(args: argparse.Namespace) -> int:
         threads=args.threads,
     )
     if not args.quiet:
-        _summarise(result.folder.path, result.metrics.to_dict())
+        summarise(result.folder.path, result.metrics.to_dict())
     return 0
 
 
@@ -197,7 +197,7 @@ def _train_config(args: argparse.Namespace, base: TrainConfig) -> TrainConfig:
     )
 
 
-def _policy_config(args: argparse.Namespace) -> PolicyConfig:
+def policy_config(args: argparse.Namespace) -> PolicyConfig:
     """The architecture that ``snds train``'s flags ask for, for positions and poses alike:
     the ``--architecture`` recipe's, with the flags' decay terms and warp."""
     return dataclasses.replace(

@@ -35,6 +35,7 @@ import numpy as np
 import scipy.io
 from scipy.spatial.transform import Rotation
 
+from snds.data.files import real_array
 from snds.data.options import DataWarning, ReadOptions, to_xyzw
 from snds.data.tracks import Track
 from snds.errors import DataError
@@ -127,10 +128,7 @@ def _load_npy(path: Path) -> np.ndarray:
 
 
 def _numeric(value: object, what: str) -> np.ndarray:
-    if not isinstance(value, np.ndarray) or value.dtype.kind not in "iuf":
-        kind = value.dtype if isinstance(value, np.ndarray) else type(value).__name__
-        raise DataError(f"{what} must hold real numbers, got {kind}")
-    array = value.astype(np.float64)
+    array = real_array(value, what)
     if not np.all(np.isfinite(array)):
         raise DataError(f"{what} contains NaN or inf values")
     return array

@@ -9,6 +9,17 @@ import numpy as np
 
 from snds.errors import DataError
 
+__all__ = [
+    "Demonstration",
+    "DemonstrationSet",
+    "Demonstrations",
+    "Normalization",
+    "Split",
+    "no_split",
+    "split_demos",
+    "split_samples",
+]
+
 _FLOAT32_TINY = float(np.finfo(np.float32).tiny)
 _FLOAT32_MAX = float(np.finfo(np.float32).max)
 

@@ -18,20 +18,34 @@ import numpy as np
 import scipy.io
 
 from snds.data.demonstrations import Demonstration, Demonstrations
+from snds.data.gaps import (
+    DEFAULT_GAPS,
+    check_gap_mode,
+    estimate_time_step,
+    fill_gaps,
+    retime_gaps,
+)
 from snds.data.targets import MAX_END_SPREAD, common_target
 from snds.errors import DataError
 
+__all__ = [
+    "csv_number",
+    "error_context",
+    "existing_file",
+    "read_csv_rows",
+    "real_array",
+    "CSV_HEADER",
+    "DEFAULT_DT",
+    "LOADERS",
+    "NPZ_KEYS",
+    "load_csv",
+    "load_demonstrations",
+    "load_mat",
+    "load_npz",
+]
+
 DEFAULT_DT = 0.01
 """Time step (seconds) assumed for ``.npz`` files that store neither ``t`` nor ``dt``."""
-
-GAP_MODES = ("fill", "retime")
-"""How :func:`load_mat` treats recording gaps (samples missing from a recording):
-``"fill"`` puts the missing samples back (:func:`fill_gaps`, the default), ``"retime"`` only
-gives the jump the time it took (:func:`retime_gaps`, how files were read before)."""
-
-DEFAULT_GAPS = "fill"
-"""The gap mode of :func:`load_mat`, :func:`load_demonstrations` and
-:class:`~snds.data.DataSource` when none is given."""
 
 CSV_HEADER = "demo,t,x1,...,xn[,v1,...,vn]"
 NPZ_KEYS = ("pos", "vel", "t", "dt")
@@ -54,9 +68,9 @@ def load_demonstrations(
         select: Keep only these demonstrations (0-based, in this order) before the target
             is chosen: a subset that ends at one point can be used from a file whose
             demonstrations end at several (3D-pick-box ends at two places 0.26 m apart).
-        gaps: How a ``.mat`` file's recording gaps are treated, one of :data:`GAP_MODES` (see
-            :func:`load_mat`). CSV and NPZ files carry their own time stamps; their samples
-            are kept as they are.
+        gaps: How a ``.mat`` file's recording gaps are treated, one of
+            :data:`~snds.data.gaps.GAP_MODES` (see :func:`load_mat`). CSV and NPZ files carry
+            their own time stamps; their samples are kept as they are.
 
     Raises:
         DataError: If the extension is not supported, ``gaps`` is unknown, or the file cannot
@@ -90,35 +104,35 @@ def load_mat(
 
     Either layout may store ``dt`` (1 x 1, seconds), the time step of every demonstration. Without
     it, each demonstration's step is estimated from its own samples (see
-    :func:`estimate_time_step`): the velocities are the recorded ones, so the times that make
-    them agree with the positions are the ones the demonstrator used.
+    :func:`~snds.data.gaps.estimate_time_step`): the velocities are the recorded ones, so the
+    times that make them agree with the positions are the ones the demonstrator used.
 
     A recording that dropped samples jumps by centimetres in one step (every demonstration of
     the 3-D LPV-DS files does, once, early in the motion). With ``gaps="fill"`` (the default)
-    the missing samples are put back (:func:`fill_gaps`): the demonstration is a continuous
-    tube again, so a policy learns the motion across the gap and a reproduction is compared
-    with the path the arm took, not with a jump. ``gaps="retime"`` keeps the recorded
-    samples and only gives the jump the time it took (:func:`retime_gaps`).
+    the missing samples are put back (:func:`~snds.data.gaps.fill_gaps`): the demonstration is
+    a continuous tube again, so a policy learns the motion across the gap and a reproduction
+    is compared with the path the arm took, not with a jump. ``gaps="retime"`` keeps the recorded
+    samples and only gives the jump the time it took (:func:`~snds.data.gaps.retime_gaps`).
 
     Arguments:
         path: The ``.mat`` file.
         max_end_spread: See :func:`load_demonstrations`.
         select: See :func:`load_demonstrations`.
-        gaps: One of :data:`GAP_MODES`.
+        gaps: One of :data:`~snds.data.gaps.GAP_MODES`.
 
     Raises:
         DataError: If the file is missing, unreadable or truncated, lacks ``Data``/``data``,
             holds matrices of the wrong shape or with NaN/inf, or ``gaps`` is unknown.
     """
     check_gap_mode(gaps)
-    path = _existing_file(path)
-    with _context(str(path)):
+    path = existing_file(path)
+    with error_context(str(path)):
         contents = _read_mat(path)
         dt = _mat_dt(contents)
         blocks = _mat_blocks(contents)
         demos = []
         for i, block in enumerate(blocks):
-            with _context(f"demonstration {i}"):
+            with error_context(f"demonstration {i}"):
                 demos.append(_mat_demonstration(block, dt, gaps))
         return _assemble(demos, path.stem, max_end_spread, select)
 
@@ -148,14 +162,14 @@ def load_csv(
             the column), a row is malformed or non-finite, or a demonstration is invalid
             (fewer than 2 samples, repeated or decreasing times).
     """
-    path = _existing_file(path)
-    with _context(str(path)):
-        rows = _read_csv_rows(path)
+    path = existing_file(path)
+    with error_context(str(path)):
+        rows = read_csv_rows(path)
         n, has_velocities = _parse_header(rows[0][1])
         samples = _group_samples(rows[1:], len(rows[0][1]))
         demos = []
         for label, values in samples.items():
-            with _context(f"demo {label!r}"):
+            with error_context(f"demo {label!r}"):
                 velocities = values[:, 1 + n :] if has_velocities else None
                 demos.append(_demonstration(values[:, 1 : 1 + n], velocities, values[:, 0]))
         return _assemble(demos, path.stem, max_end_spread, select)
@@ -187,8 +201,8 @@ def load_npz(
         DataError: If the file is missing, not an ``.npz`` archive, has unknown or missing keys,
             arrays of the wrong shape or type, or NaN/inf values.
     """
-    path = _existing_file(path)
-    with _context(str(path)):
+    path = existing_file(path)
+    with error_context(str(path)):
         arrays = _read_npz(path)
         positions = _npz_positions(arrays)
         velocities = arrays.get("vel")
@@ -197,7 +211,7 @@ def load_npz(
         times = _npz_times(arrays, positions.shape[:2])
         demos = []
         for i in range(positions.shape[0]):
-            with _context(f"demonstration {i}"):
+            with error_context(f"demonstration {i}"):
                 demo_velocities = None if velocities is None else velocities[i]
                 demos.append(_demonstration(positions[i], demo_velocities, times[i]))
         return _assemble(demos, path.stem, max_end_spread, select)
@@ -211,59 +225,11 @@ LOADERS: dict[str, Callable[..., Demonstrations]] = {
 """Loader of each supported extension; each takes a path and ``max_end_spread``."""
 
 
-def estimate_time_step(positions: np.ndarray, velocities: np.ndarray) -> float:
-    r"""The time step that best explains the position increments by the recorded velocities.
-
-    Fits :math:`x_{k+1} - x_k \approx \Delta t \, (v_k + v_{k+1}) / 2` (trapezoidal rule) by
-    least squares over the moving samples, then fits again without the samples whose residual
-    exceeds 5 times the median. The refit matters: recorded positions can jump by centimetres
-    in one sample (every 3-D LPV-DS file has such a jump), which biases the plain fit by up to
-    7%; on the LPV-DS files that store ``dt`` the refit recovers it to within 0.5%.
-
-    Arguments:
-        positions: Positions, shape (T, n).
-        velocities: Recorded velocities, shape (T, n).
-
-    Returns:
-        The estimated time step in seconds.
-
-    Raises:
-        DataError: If the velocities cannot explain the motion (no positive step fits).
-    """
-    steps = np.diff(positions, axis=0)
-    mean_velocities = (velocities[1:] + velocities[:-1]) / 2
-    # Samples at rest fit any time step, so they carry no information about it.
-    moving = np.any(mean_velocities != 0, axis=1)
-    if not moving.any():
-        raise DataError(
-            "cannot infer the time step: every velocity is zero; store 'dt' in the file"
-        )
-    steps, mean_velocities = steps[moving], mean_velocities[moving]
-    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-        dt = _least_squares_step(steps, mean_velocities)
-        residuals = np.linalg.norm(steps - dt * mean_velocities, axis=1)
-        # NaN residuals (overflow) leave no inlier, hence a NaN step and the error below.
-        inliers = residuals <= 5 * np.median(residuals)
-        dt = _least_squares_step(steps[inliers], mean_velocities[inliers])
-    if not (np.isfinite(dt) and dt > 0):
-        raise DataError(
-            "cannot infer the time step: the velocities do not match the position increments; "
-            "store 'dt' in the file"
-        )
-    return float(dt)
-
-
-def _least_squares_step(steps: np.ndarray, mean_velocities: np.ndarray) -> float:
-    """Minimiser of ||steps - dt * mean_velocities||^2 over dt (NaN if velocities are zero)."""
-    scale = float(np.sum(mean_velocities * mean_velocities))
-    return float(np.sum(steps * mean_velocities)) / scale if scale > 0 else float("nan")
-
-
 # Shared helpers.
 
 
 @contextlib.contextmanager
-def _context(where: str) -> Iterator[None]:
+def error_context(where: str) -> Iterator[None]:
     """Prefixes DataErrors raised inside with ``where``, so messages say which file and demo."""
     try:
         yield
@@ -271,7 +237,8 @@ def _context(where: str) -> Iterator[None]:
         raise DataError(f"{where}: {error}") from error
 
 
-def _existing_file(path: str | Path) -> Path:
+def existing_file(path: str | Path) -> Path:
+    """``path`` as a Path; a :class:`~snds.errors.DataError` if it is missing or a folder."""
     path = Path(path)
     if not path.exists():
         raise DataError(f"{path}: no such file")
@@ -316,7 +283,7 @@ def _assemble(
     return assembled
 
 
-def _numeric(value: object, what: str) -> np.ndarray:
+def real_array(value: object, what: str) -> np.ndarray:
     """``value`` as a float64 array, refusing text, objects and complex numbers."""
     if not isinstance(value, np.ndarray) or value.dtype.kind not in "iuf":
         kind = value.dtype if isinstance(value, np.ndarray) else type(value).__name__
@@ -341,7 +308,7 @@ def _read_mat(path: Path) -> dict[str, object]:
 def _mat_dt(contents: dict[str, object]) -> float | None:
     if "dt" not in contents:
         return None
-    dt = _numeric(contents["dt"], "'dt'")
+    dt = real_array(contents["dt"], "'dt'")
     if dt.size != 1 or not (np.isfinite(dt.item()) and dt.item() > 0):
         raise DataError(f"'dt' must be one positive number, got {np.ravel(dt)[:3]}")
     return dt.item()
@@ -352,12 +319,12 @@ def _mat_blocks(contents: dict[str, object]) -> list[np.ndarray]:
     if "Data" in contents and "data" in contents:
         raise DataError("holds both 'Data' and 'data'; keep one")
     if "Data" in contents:
-        return _split_at_rest(_numeric(contents["Data"], "'Data'"))
+        return _split_at_rest(real_array(contents["Data"], "'Data'"))
     if "data" in contents:
         cells = contents["data"]
         if not isinstance(cells, np.ndarray) or cells.dtype != object or cells.ndim != 2:
             raise DataError("'data' must be a k x 1 cell array of 2n x T matrices")
-        return [_numeric(cell, f"cell {i} of 'data'") for i, cell in enumerate(cells.ravel())]
+        return [real_array(cell, f"cell {i} of 'data'") for i, cell in enumerate(cells.ravel())]
     found = sorted(key for key in contents if not key.startswith("__"))
     raise DataError(f"no variable 'Data' or 'data' (found: {', '.join(found) or 'none'})")
 
@@ -378,12 +345,6 @@ def _split_at_rest(data: np.ndarray) -> list[np.ndarray]:
     return blocks
 
 
-def check_gap_mode(gaps: str) -> None:
-    """Raises a DataError naming the choices unless ``gaps`` is one of :data:`GAP_MODES`."""
-    if gaps not in GAP_MODES:
-        raise DataError(f"unknown gap mode {gaps!r}; choose from {list(GAP_MODES)}")
-
-
 def _mat_demonstration(block: np.ndarray, dt: float | None, gaps: str) -> Demonstration:
     if block.ndim != 2 or block.shape[0] % 2 or block.shape[0] == 0:
         raise DataError(f"expected a 2n x T matrix (positions then velocities), got {block.shape}")
@@ -397,130 +358,10 @@ def _mat_demonstration(block: np.ndarray, dt: float | None, gaps: str) -> Demons
     return Demonstration(positions, velocities, retime_gaps(positions, velocities, step))
 
 
-def gap_durations(positions: np.ndarray, velocities: np.ndarray, dt: float) -> np.ndarray:
-    r"""The time each step of a recording at a fixed step took, longer where samples are
-    missing.
-
-    A recording that drops samples shows a position jump that its velocities cannot explain:
-    every demonstration of the 3-D LPV-DS files has one such gap, 1-17 cm in one step early in
-    the motion, after which the motion goes on from the new position (a step, not a spike).
-    A step whose increment is more than 5 times what the trapezoidal rule
-    :math:`\Delta t (v_k + v_{k+1}) / 2` explains (and more than 1e-3 of the motion's extent)
-    gets the time that the velocities need to cover it,
-    :math:`\Delta t_k = \Delta x \cdot \bar v / \|\bar v\|^2` (least squares), if that is
-    longer than ``dt``; every other step takes ``dt``.
-
-    Arguments:
-        positions: Positions, shape (T, n).
-        velocities: Recorded velocities, shape (T, n).
-        dt: The nominal time step.
-
-    Returns:
-        The duration of each step, shape (T - 1,): ``dt``, or longer across a gap.
-    """
-    steps = np.full(len(positions) - 1, dt)
-    increments = np.diff(positions, axis=0)
-    mean_velocities = (velocities[1:] + velocities[:-1]) / 2
-    extent = float(np.linalg.norm(positions - positions[-1], axis=1).max())
-    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-        explained = dt * np.linalg.norm(mean_velocities, axis=1)
-        gaps = np.linalg.norm(increments, axis=1) > 5 * explained + 1e-3 * extent
-        speed2 = np.sum(mean_velocities**2, axis=1)
-        needed = np.sum(increments * mean_velocities, axis=1) / speed2
-    gaps &= np.isfinite(needed) & (needed > dt)
-    steps[gaps] = needed[gaps]
-    return steps
-
-
-def retime_gaps(positions: np.ndarray, velocities: np.ndarray, dt: float) -> np.ndarray:
-    """Sample times at a fixed step, with a longer step wherever samples are missing (the
-    durations of :func:`gap_durations`).
-
-    At a fixed step the rollout from the recorded start can never make a gap's jump, so it
-    would lag the demonstration by the gap for the rest of the motion; with the gap's own
-    duration it need not. The samples stay as recorded, so the demonstration still jumps
-    across the gap: :func:`fill_gaps` puts the missing samples back.
-
-    Arguments:
-        positions: Positions, shape (T, n).
-        velocities: Recorded velocities, shape (T, n).
-        dt: The nominal time step.
-
-    Returns:
-        Strictly increasing times starting at 0, shape (T,).
-    """
-    return np.concatenate([[0.0], np.cumsum(gap_durations(positions, velocities, dt))])
-
-
-def fill_gaps(
-    positions: np.ndarray, velocities: np.ndarray, dt: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    r"""A recording at a fixed step with the samples it dropped put back.
-
-    Each gap (a step of duration :math:`h > \Delta t`, see :func:`gap_durations`) from
-    :math:`(x_k, v_k)` to :math:`(x_{k+1}, v_{k+1})` becomes :math:`m = \lfloor h / \Delta t
-    \rfloor` steps of :math:`h / m \ge \Delta t`, whose new samples lie on the cubic Hermite
-    curve through both ends with both recorded velocities, and take its velocities: the
-    smoothest motion that leaves and joins the recording as it moved, in the time the
-    velocities need. Without them a gap is a hole, 2-27 % of the task's extent long in the
-    3-D LPV-DS files, in the thin tube of the demonstrations: a policy has no data there and
-    its rollouts leave the tube across it. The recorded samples are kept unchanged.
-
-    Arguments:
-        positions: Positions, shape (T, n).
-        velocities: Recorded velocities, shape (T, n).
-        dt: The nominal time step.
-
-    Returns:
-        The positions (T', n), velocities (T', n) and strictly increasing times from 0 (T',),
-        T' >= T (T' = T when nothing is missing).
-    """
-    durations = gap_durations(positions, velocities, dt)
-    # Sub-steps of each recorded step: 1, or h / dt rounded down (up to rounding error) across
-    # a gap, so no filled step is shorter than the recording's own.
-    counts = np.maximum(1, np.floor(durations / dt + 1e-9).astype(np.int64))
-    step = np.repeat(np.arange(len(durations)), counts)
-    first = np.repeat(np.cumsum(counts) - counts, counts)
-    fraction = (np.arange(len(step)) - first + 1) / counts[step]
-    h = durations[step]
-    x, v = _hermite(
-        positions[step], velocities[step], positions[step + 1], velocities[step + 1], h, fraction
-    )
-    # The recorded sample itself, not the curve's rounding of it, ends each step.
-    recorded = fraction == 1.0
-    x[recorded], v[recorded] = positions[1:], velocities[1:]
-    starts = np.concatenate([[0.0], np.cumsum(durations)[:-1]])
-    times = starts[step] + h * fraction
-    return (
-        np.concatenate([positions[:1], x]),
-        np.concatenate([velocities[:1], v]),
-        np.concatenate([[0.0], times]),
-    )
-
-
-def _hermite(
-    x0: np.ndarray,
-    v0: np.ndarray,
-    x1: np.ndarray,
-    v1: np.ndarray,
-    h: np.ndarray,
-    s: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Positions and velocities (N, n) at fractions ``s`` (N,) of steps of durations ``h``
-    (N,) on the cubic Hermite curves from (x0, v0) to (x1, v1), each (N, n)."""
-    s, h = s[:, None], h[:, None]
-    basis = (2 * s**3 - 3 * s**2 + 1, s**3 - 2 * s**2 + s, -2 * s**3 + 3 * s**2, s**3 - s**2)
-    slopes = (6 * s**2 - 6 * s, 3 * s**2 - 4 * s + 1, -6 * s**2 + 6 * s, 3 * s**2 - 2 * s)
-    ends = (x0, h * v0, x1, h * v1)
-    positions = sum(b * e for b, e in zip(basis, ends, strict=True))
-    velocities = sum(d * e for d, e in zip(slopes, ends, strict=True)) / h
-    return positions, velocities
-
-
 # CSV.
 
 
-def _read_csv_rows(path: Path) -> list[tuple[int, list[str]]]:
+def read_csv_rows(path: Path) -> list[tuple[int, list[str]]]:
     """Non-blank rows with their line numbers; the first is the header."""
     rows = []
     try:
@@ -564,11 +405,12 @@ def _group_samples(rows: list[tuple[int, list[str]]], width: int) -> dict[str, n
     for line, row in rows:
         if len(row) != width:
             raise DataError(f"line {line} has {len(row)} fields, the header {width}")
-        groups.setdefault(row[0].strip(), []).append([_number(f, line) for f in row[1:]])
+        groups.setdefault(row[0].strip(), []).append([csv_number(f, line) for f in row[1:]])
     return {label: np.asarray(values) for label, values in groups.items()}
 
 
-def _number(field: str, line: int) -> float:
+def csv_number(field: str, line: int) -> float:
+    """A CSV field as a finite float; a :class:`~snds.errors.DataError` naming the line."""
     try:
         value = float(field)
     except ValueError:
@@ -597,7 +439,7 @@ def _read_npz(path: Path) -> dict[str, np.ndarray]:
     unknown = sorted(set(arrays) - set(NPZ_KEYS))
     if unknown:
         raise DataError(f"unexpected arrays {unknown} (expected keys: {', '.join(NPZ_KEYS)})")
-    return {key: _numeric(value, repr(key)) for key, value in arrays.items()}
+    return {key: real_array(value, repr(key)) for key, value in arrays.items()}
 
 
 def _npz_positions(arrays: dict[str, np.ndarray]) -> np.ndarray:

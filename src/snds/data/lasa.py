@@ -13,6 +13,8 @@ from snds.data.demonstrations import Demonstration, Demonstrations
 from snds.data.targets import common_target
 from snds.errors import DataError
 
+__all__ = ["LASA_NAMES", "load_lasa"]
+
 LASA_NAMES: tuple[str, ...] = (
     "Angle",
     "BendedLine",

@@ -32,14 +32,29 @@ from scipy.spatial.transform import Rotation, Slerp
 from snds.data.demonstrations import Demonstration, Demonstrations, DemonstrationSet
 from snds.data.files import (
     DEFAULT_DT,
-    _context,
-    _existing_file,
-    _number,
-    _numeric,
-    _read_csv_rows,
+    csv_number,
+    error_context,
+    existing_file,
+    read_csv_rows,
+    real_array,
 )
 from snds.data.targets import MAX_END_SPREAD, common_target
 from snds.errors import DataError
+
+__all__ = [
+    "MAX_END_ANGLE",
+    "POSE_CSV_HEADER",
+    "POSE_NPZ_KEYS",
+    "SYNTHETIC_START",
+    "PoseDemonstration",
+    "PoseDemonstrations",
+    "angles_to",
+    "angular_velocities",
+    "common_pose_target",
+    "is_pose_file",
+    "load_poses",
+    "with_synthetic_orientations",
+]
 
 POSE_CSV_HEADER = ("demo", "t", "x", "y", "z", "qx", "qy", "qz", "qw")
 POSE_NPZ_KEYS = ("pos", "quat", "t", "dt")
@@ -393,12 +408,12 @@ def load_poses(
     Raises:
         DataError: If the file cannot be used; the message starts with its path.
     """
-    path = _existing_file(path)
+    path = existing_file(path)
     readers = {".csv": _read_pose_csv, ".npz": _read_pose_npz}
     reader = readers.get(path.suffix.lower())
     if reader is None:
         raise DataError(f"{path}: pose demonstrations must be .csv or .npz, got {path.suffix!r}")
-    with _context(str(path)):
+    with error_context(str(path)):
         demos = reader(path)
         if select is not None:
             for i in select:
@@ -412,7 +427,7 @@ def load_poses(
 
 
 def _read_pose_csv(path: Path) -> list[PoseDemonstration]:
-    rows = _read_csv_rows(path)
+    rows = read_csv_rows(path)
     header = [name.strip().lower() for name in rows[0][1]]
     if tuple(header) != POSE_CSV_HEADER:
         raise DataError(f"header is {','.join(header)!r}, expected {','.join(POSE_CSV_HEADER)!r}")
@@ -420,11 +435,11 @@ def _read_pose_csv(path: Path) -> list[PoseDemonstration]:
     for line, row in rows[1:]:
         if len(row) != len(POSE_CSV_HEADER):
             raise DataError(f"line {line} has {len(row)} fields, the header {len(POSE_CSV_HEADER)}")
-        values = [_number(field, line) for field in row[1:]]
+        values = [csv_number(field, line) for field in row[1:]]
         groups.setdefault(row[0].strip(), []).append(values)
     demos = []
     for label, values in groups.items():
-        with _context(f"demo {label!r}"):
+        with error_context(f"demo {label!r}"):
             array = np.asarray(values)
             demos.append(PoseDemonstration(array[:, 1:4], array[:, 4:8], array[:, 0]))
     return demos
@@ -442,7 +457,7 @@ def _read_pose_npz(path: Path) -> list[PoseDemonstration]:
         raise DataError(
             f"expected arrays 'pos' and 'quat' (optional 't' or 'dt'), found {sorted(arrays)}"
         )
-    arrays = {key: _numeric(value, repr(key)) for key, value in arrays.items()}
+    arrays = {key: real_array(value, repr(key)) for key, value in arrays.items()}
     positions, quats = arrays["pos"], arrays["quat"]
     if positions.ndim != 3 or positions.shape[2] != 3:
         raise DataError(f"'pos' must have shape (demos, samples, 3), got {positions.shape}")
@@ -462,6 +477,6 @@ def _read_pose_npz(path: Path) -> list[PoseDemonstration]:
         times = np.broadcast_to(dt * np.arange(shape[1]), shape)
     demos = []
     for i in range(shape[0]):
-        with _context(f"demonstration {i}"):
+        with error_context(f"demonstration {i}"):
             demos.append(PoseDemonstration(positions[i], quats[i], times[i]))
     return demos

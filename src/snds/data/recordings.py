@@ -23,7 +23,8 @@ import numpy as np
 
 from snds.data import arrays, bags, hdf5, lerobot
 from snds.data.demonstrations import Demonstration, Demonstrations
-from snds.data.files import DEFAULT_GAPS, load_demonstrations
+from snds.data.files import load_demonstrations
+from snds.data.gaps import DEFAULT_GAPS
 from snds.data.options import ReadOptions
 from snds.data.poses import PoseDemonstration, PoseDemonstrations, is_pose_file, load_poses
 from snds.data.targets import MAX_END_SPREAD

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from snds.data.demonstrations import Demonstrations
-from snds.data.files import DEFAULT_GAPS, check_gap_mode
+from snds.data.gaps import DEFAULT_GAPS, check_gap_mode
 from snds.data.lasa import load_lasa
 from snds.data.options import ReadOptions
 from snds.data.poses import PoseDemonstrations, with_synthetic_orientations
@@ -56,7 +56,7 @@ class DataSource:
         max_end_spread: Largest accepted distance of a file's demonstration end from the
             common target, in extents (see :func:`~snds.data.targets.common_target`).
         gaps: How a ``.mat`` file's recording gaps are treated, one of
-            :data:`~snds.data.files.GAP_MODES` (see :func:`~snds.data.files.load_mat`).
+            :data:`~snds.data.gaps.GAP_MODES` (see :func:`~snds.data.files.load_mat`).
         poses: Whether the task is in SE(3). Automatic for a pose file; position data are
             then lifted with synthetic orientations.
         orientation_seed: Seed of the synthetic orientations.

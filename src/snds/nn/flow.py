@@ -17,6 +17,8 @@ from torch import Tensor, nn
 
 from snds.nn import fused
 
+__all__ = ["EuclideanizingFlow", "LayerCache", "RFFCoupling"]
+
 
 @dataclass
 class LayerCache:

@@ -8,6 +8,8 @@ from torch import Tensor, nn
 
 from snds.nn import fused
 
+__all__ = ["CONVEX_ACTIVATIONS", "ICNN"]
+
 
 def _softplus(u: Tensor) -> tuple[Tensor, Tensor]:
     return F.softplus(u), torch.sigmoid(u)

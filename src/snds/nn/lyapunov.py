@@ -8,6 +8,8 @@ from torch import Tensor, nn
 from snds.nn.flow import EuclideanizingFlow
 from snds.nn.icnn import ICNN
 
+__all__ = ["Lyapunov", "WarpedLyapunov"]
+
 
 class Lyapunov(nn.Module):
     r"""The Bregman form of a convex network, plus a quadratic floor.

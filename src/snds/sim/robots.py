@@ -13,11 +13,7 @@ from dataclasses import dataclass
 from importlib import metadata
 from pathlib import Path
 
-from snds.errors import SNDSError
-
-
-class SimulationError(SNDSError):
-    """A simulation that cannot run: a missing optional package, a bad robot or setting."""
+from snds.errors import SimulationError
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -24,12 +24,11 @@ values at the target, :math:`f(0)`, :math:`\phi(0)`, :math:`g(0)` and :math:`\na
 computed by the library in float64 and stored (the library evaluates them with every batch).
 A state exactly at the target gets velocity 0.
 
-:mod:`snds.c_check` compiles the files and compares them with the library.
+:mod:`snds.export.c_check` compiles the files and compares them with the library.
 """
 
 from __future__ import annotations
 
-import copy
 import math
 import re
 from pathlib import Path
@@ -37,7 +36,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from snds.c_source import CExportError, Generator
+from snds.errors import CExportError
+from snds.export.c_source import Generator
+from snds.export.graph import policy_copy
 from snds.io import atomic_write
 from snds.nn.lyapunov import Lyapunov, WarpedLyapunov
 from snds.phase import StartRule
@@ -114,7 +115,7 @@ def export_c(
         raise CExportError(f"the control rate must be a positive number of Hz, got {rate}")
     if max_speed is not None and not (math.isfinite(max_speed) and max_speed > 0):
         raise CExportError(f"--max-speed must be a positive number, got {max_speed}")
-    exact = copy.deepcopy(policy).to(device="cpu", dtype=torch.float64).eval()
+    exact = policy_copy(policy, torch.float64)
     path = Path(path)
     if path.suffix != ".h":
         raise CExportError(f"{path}: the C export's file is the header, ending in .h")

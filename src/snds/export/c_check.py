@@ -1,4 +1,4 @@
-"""Compiling a C export (:mod:`snds.c_export`) and running it from Python, to check it.
+"""Compiling a C export (:mod:`snds.export.c`) and running it from Python, to check it.
 
 :func:`compile_shared` builds the source with the system's C compiler as strict C99
 (``-std=c99 -Wall -Werror -O2``) into a shared library; :class:`CPolicy` calls its functions
@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from snds.c_source import CExportError
-from snds.export import Check, compare
+from snds.errors import CExportError
+from snds.export.comparison import Check, compare
 from snds.policy import Policy
 
 __all__ = ["CFLAGS", "CPolicy", "compile_shared", "compiler", "verify_c"]

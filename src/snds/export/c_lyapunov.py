@@ -1,8 +1,8 @@
 # ruff: noqa: E501  (the C templates keep one C statement per line)
-r"""The C of a policy's V and decay rate, for :mod:`snds.c_source`: the warp's additive
+r"""The C of a policy's V and decay rate, for :mod:`snds.export.c_source`: the warp's additive
 coupling layers and their Jacobian-transpose product, the ICNN in its Bregman form with its
 analytic gradient, and the decay rate a(x) / V with the data kernel on the anchors. Each
-function takes the :class:`~snds.c_source.Generator` and returns C with its placeholders
+function takes the :class:`~snds.export.c_source.Generator` and returns C with its placeholders
 (REAL, MATH, LIT, SFX); :func:`dense` is the matrix product all of them use.
 """
 

@@ -1,13 +1,13 @@
 # ruff: noqa: E501  (the C templates keep one C statement per line)
-r"""The C99 source of a policy (:mod:`snds.c_export` writes it): one generator per model.
+r"""The C99 source of a policy (:mod:`snds.export.c` writes it): one generator per model.
 
 Every function is written once with placeholders (``REAL``, ``MATH(name)``, ``LIT(number)``,
 ``SFX``) and filled in for each :class:`CVariant` (double, float). The arithmetic follows the
 library's operation by operation (the same sums in the same order where the library's order
 is fixed, its constants computed as it computes them), so the double version agrees with the
-library in float64 to rounding: :mod:`snds.c_check` measures it. V and its decay rate are
-written by :mod:`snds.c_lyapunov`, the space's maps (a pose's log and exponential maps and
-twist) by :mod:`snds.c_space`; this module writes the nominal network, the projection, the
+library in float64 to rounding: :mod:`snds.export.c_check` measures it. V and its decay rate are
+written by :mod:`snds.export.c_lyapunov`, the space's maps (a pose's log and exponential maps and
+twist) by :mod:`snds.export.c_space`; this module writes the nominal network, the projection, the
 public functions and the files.
 """
 
@@ -20,10 +20,10 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from snds import c_lyapunov
-from snds.c_lyapunov import dense
-from snds.c_space import SINC_THRESHOLD, advance, chart, so3, to_user
-from snds.errors import SNDSError
+from snds.errors import CExportError
+from snds.export import c_lyapunov
+from snds.export.c_lyapunov import dense
+from snds.export.c_space import SINC_THRESHOLD, advance, chart, so3, to_user
 from snds.nn.lyapunov import WarpedLyapunov
 from snds.nn.mlp import FourierFeatures
 from snds.phase import StartRule
@@ -41,11 +41,6 @@ _ACTIVATIONS = {
     "softplus": "(u > LIT(20.0) ? u : MATH(log1p)(MATH(exp)(u)))",
     "gelu": "LIT(0.5) * u * (LIT(1.0) + MATH(erf)(u * LIT(0.7071067811865476)))",
 }
-
-
-class CExportError(SNDSError):
-    """A policy the C export cannot write (a method or a layer it does not have, a bad
-    option)."""
 
 
 @dataclass(frozen=True)
@@ -92,7 +87,7 @@ VARIANTS = (
 
 
 class Generator:
-    """The C files of one policy (float64, eval mode; see :func:`snds.c_export.export_c`).
+    """The C files of one policy (float64, eval mode; see :func:`snds.export.c.export_c`).
 
     Arguments:
         policy: A float64 copy of an SNDS policy (positions, poses or a phase).

@@ -1,8 +1,8 @@
 # ruff: noqa: E501  (the C templates keep one C statement per line)
-r"""The C of a policy's space, for :mod:`snds.c_source`: how a state becomes model coordinates
+r"""The C of a policy's space, for :mod:`snds.export.c_source`: how a state becomes model coordinates
 (a pose's log map, as roma computes it), how a model velocity becomes a user velocity (a
 pose's twist through the left Jacobian of SO(3)), and how a state moves along a velocity (a
-pose's exponential map). Each function takes the :class:`~snds.c_source.Generator` and returns
+pose's exponential map). Each function takes the :class:`~snds.export.c_source.Generator` and returns
 C with its placeholders (REAL, MATH, LIT, SFX).
 """
 
