@@ -24,6 +24,7 @@ from geometry_msgs.msg import PoseStamped, TwistStamped
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
+from snds.cli._common import start_rule_of
 from snds.models import load_model
 from snds.ros import NodeConfig, make_node
 
@@ -35,24 +36,27 @@ def main() -> None:
     options.add_argument("--seconds", type=float, default=20.0)
     args = options.parse_args()
     set_threads(args.threads)  # one, as the CLI
-    policy, _ = load_model(args.model)
-    start = policy.target + 3 * policy.normalization.length
+    policy, description = load_model(args.model)
+    dim = policy.space.position_dim  # the robot's positions; a phase is the node's own
+    start = policy.target[:dim] + 3 * np.asarray(policy.normalization.length).reshape(-1)[:dim]
+    rule = start_rule_of(args.model, description) if policy.space.phase_dim else None
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     context = rclpy.context.Context()
     rclpy.init(context=context, domain_id=150 + os.getpid() % 50)
     config = NodeConfig(state_topic="/bench/state", command_topic="/bench/command", rate=args.rate)
-    node = make_node(policy, config, context=context)
+    node = make_node(policy, config, context=context, start_rule=rule)
     robot = Node("robot", context=context)
     state = {
         "x": start.copy(),
-        "v": np.zeros(2),
+        "v": np.zeros(dim),
         "last": time.monotonic(),
         "reset": time.monotonic(),
     }
     publisher = robot.create_publisher(PoseStamped, config.state_topic, 10)
 
     def on_command(message):
-        state["v"] = np.array([message.twist.linear.x, message.twist.linear.y])
+        linear = message.twist.linear
+        state["v"] = np.array([linear.x, linear.y, linear.z])[:dim]
 
     def on_timer():
         now = time.monotonic()
@@ -61,7 +65,8 @@ def main() -> None:
         if now - state["reset"] >= 5.0:
             state["x"], state["reset"] = start.copy(), now
         message = PoseStamped()
-        message.pose.position.x, message.pose.position.y = (float(v) for v in state["x"])
+        for axis, value in zip("xyz", state["x"], strict=False):
+            setattr(message.pose.position, axis, float(value))
         publisher.publish(message)
 
     robot.create_subscription(TwistStamped, config.command_topic, on_command, 10)
