@@ -22,15 +22,16 @@ import torch
 from matplotlib import colors
 from matplotlib.figure import Figure
 
-from snds.arrival import ARRIVAL_TOLERANCE, arrival_time
+from snds.arrival import ARRIVAL_TOLERANCE
 from snds.data.demonstrations import Demonstrations
 from snds.io import atomic_write
-from snds.obstacles import ModulatedPolicy, rollout_numpy_avoiding
+from snds.obstacles import ModulatedPolicy
 from snds.parallel import torch_threads
 from snds.phase import start_states
 from snds.policy import Policy
-from snds.rollout import rollout_numpy
+from snds.rollout import Arrival, rollout, rollout_numpy
 from snds.stability import CheckConfig
+from snds.steppers import GuardedEuler
 
 FIGSIZE = (6.0, 4.5)  # plots against time or step
 AXES_INCHES = 4.6  # longer side of the axes of a plot in the plane
@@ -365,21 +366,16 @@ def rollouts_until_arrival(
         The rollouts, shape (B, T, space.dim), and the step at which each arrived, shape
         (B,) (-1 for one that had not arrived at the cap).
     """
-    space = policy.space
     duration = demos.max_duration()
     piece = max(1, int(1.5 * duration / dt))
     cap = int(CheckConfig().horizon_factor * duration / dt)
     target = torch.tensor(np.asarray(demos.target, dtype=np.float64))
-    scales = torch.as_tensor(space.error_scales(demos.extent()))
-    pieces = [rollout_numpy(policy, starts, dt=dt, steps=piece)]
-    while True:
-        states = np.concatenate(pieces, axis=1)
-        errors = space.errors(torch.as_tensor(states), target) / scales  # (B, T, k)
-        times = np.arange(states.shape[1])
-        steps = np.array([arrival_time(times, e.numpy(), ARRIVAL_TOLERANCE) for e in errors])
-        if not np.isnan(steps).any() or states.shape[1] - 1 >= cap:
-            return states, np.nan_to_num(steps, nan=-1).astype(int)
-        pieces.append(rollout_numpy(policy, states[:, -1], dt=dt, steps=piece)[:, 1:])
+    arrival = Arrival.of(policy.space, target, demos.extent(), tolerance=ARRIVAL_TOLERANCE)
+    x0 = torch.tensor(np.asarray(starts, dtype=np.float64))
+    # Whole pieces until every rollout has arrived: the first piece that reaches the cap ends it.
+    steps = piece * max(1, -(-cap // piece))
+    result = rollout(policy, x0, dt=dt, steps=steps, until=arrival, check_every=piece)
+    return result.states.transpose(0, 1).cpu().numpy(), arrival.steps(result.states)
 
 
 def plot_all(
@@ -492,6 +488,8 @@ def plot_all(
 
 
 OBSTACLE_COLOR = "#868e96"
+#: The guarded step among obstacles: 40 halvings (1e-12 of the period) before holding a state.
+AVOIDING = GuardedEuler(max_halvings=40)
 
 
 def plot_obstacles(
@@ -506,7 +504,7 @@ def plot_obstacles(
     """Streamlines of a policy modulated by obstacles (:mod:`snds.obstacles`), with them.
 
     The obstacles are filled grey, their margins dashed; rollouts are guarded
-    (:func:`snds.obstacles.avoiding_rollout`) for 3x the longest demonstration, from the
+    (:class:`~snds.steppers.GuardedEuler` with the scene) for 3x the longest demonstration, from the
     demonstrations' starts (solid) and from ``random_starts`` free starts in the view
     (dashed). States with more than two coordinates are shown in the slice through the target.
 
@@ -534,8 +532,8 @@ def plot_obstacles(
     dt = demos.mean_dt()
     steps = int(3 * demos.max_duration() / dt)
     # One batch for both sets of starts: a step costs the same for 8 states as for 15.
-    paths = rollout_numpy_avoiding(
-        policy, scene, np.concatenate([starts, random]), dt=dt, steps=steps
+    paths = rollout_numpy(
+        policy, np.concatenate([starts, random]), dt=dt, steps=steps, stepper=AVOIDING, scene=scene
     )
     rollouts, perturbed = (paths[: len(starts)] if len(starts) else None), paths[len(starts) :]
     fig, ax = _figure(x1, x2)
