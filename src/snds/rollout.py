@@ -31,10 +31,11 @@ from snds.steppers import (
     Dynamics,
     Euler,
     Field,
-    GuardedEuler,
     Stepper,
     guarded_step,
     policy_guard,
+    safe_velocity,
+    speed_scale,
 )
 
 __all__ = [
@@ -228,6 +229,8 @@ def rollout(
     if moving and isinstance(dt, Tensor):
         raise ConfigError("rollouts among moving obstacles need one time step for all rows")
     x, value, time = x0, None, torch.full_like(h, start_time)
+    static = dynamics.scene is not None and not moving
+    held = torch.zeros_like(h, dtype=torch.bool) if static else None
     states, times, taken = [x0], [time], []
     for step in range(int(remaining.max()) if len(x0) else 0):
         live = remaining > 0
@@ -237,7 +240,7 @@ def rollout(
             break
         # The obstacles do not wait: the shared clock advances by the nominal step.
         t = start_time + step * float(dt) if moving else 0.0
-        result = stepper.step(dynamics, x, h, t=t, value=value)
+        result = stepper.step(dynamics, x, h, t=t, value=value, held=held)
         if bool(live.all()):
             x, moved, value = result.states, result.taken, result.value
         else:
@@ -249,6 +252,9 @@ def rollout(
                 value = None
         time = time + moved
         remaining = remaining - 1
+        if static:
+            # A held state stays held: the same state, velocity and scene.
+            held = held | (live & (moved == 0))
         states.append(x)
         times.append(time)
         taken.append(moved)
@@ -402,69 +408,6 @@ def _adaptive(
         min_clearance=clear,
         entered=entered,
     )
-
-
-def speed_scale(space: Space, velocity: Tensor, max_speed: float | None) -> Tensor:
-    r"""The factor :math:`s = \min(1, v_{max} / |v_p|)` of each velocity (B, tangent_dim)
-    that brings the speed of its positions :math:`|v_p|` (the first ``space.position_dim``
-    numbers: a pose's linear velocity, a phase model's positions) down to ``max_speed``, shape
-    (B,); 1 everywhere for None.
-
-    Scaling the whole velocity by :math:`s > 0` keeps the guarantee: :math:`\nabla V^\top
-    (s \pi) \le -s a(x) < 0` (docs/guarantee.md, "Speed limit").
-    """
-    if max_speed is None:
-        return torch.ones_like(velocity[:, 0])
-    if not max_speed > 0:
-        raise ValueError(f"max_speed must be positive, got {max_speed}")
-    speed = velocity[:, : space.position_dim].norm(dim=-1)
-    return torch.where(speed > max_speed, max_speed / torch.where(speed > 0, speed, 1.0), 1.0)
-
-
-@torch.no_grad()
-def safe_velocity(
-    policy: Policy, x: Tensor, dt: float, *, max_speed: float | None = None, scene=None
-) -> tuple[Tensor, Tensor]:
-    """The policy's velocities at states x (B, space.dim), each scaled by h / dt for the
-    guarded step h <= dt along its space (:class:`~snds.steppers.GuardedEuler`), and first,
-    with ``max_speed``, by :func:`speed_scale`; with a ``scene`` (positions only), modulated
-    around its obstacles and shortened so that the step stays out of them.
-
-    A controller that holds a velocity for one period dt moves the state by about
-    ``policy.space.advance(x, dt, velocity)``; scaled so, that step meets the guard's
-    condition, and a stiff field cannot make a robot chatter on a discrete cycle at constant
-    V. A policy without V keeps its velocities (h = dt) unless a scene shortens them. Under a
-    speed limit the velocity s pi promises the decrease rate s a(x), and the guard asks that
-    of it.
-
-    Arguments:
-        policy: The policy.
-        x: States, shape (B, space.dim), user units.
-        dt: The control period, seconds.
-        max_speed: Largest speed of the positions, user units per second (None: no limit).
-        scene: Obstacles (:class:`snds.obstacles.Scene`), or None.
-
-    Returns:
-        The scaled velocities, shape (B, space.tangent_dim), and h, shape (B,).
-    """
-    h = torch.full_like(x[:, 0], dt)
-    if scene is not None:
-        step = GuardedEuler(max_halvings=40).step(Dynamics.of(policy, scene=scene), x, h)
-        return step.velocity * (step.taken / dt).unsqueeze(-1), step.taken
-    velocity = policy(x)
-    scale = speed_scale(policy.space, velocity, max_speed)
-    velocity = velocity * scale.unsqueeze(-1)
-    if policy.stable:
-        lyapunov, rate = policy_guard(policy)
-        # The velocity is evaluated once: the guarded step only asks for it at x.
-        scaled = Dynamics(
-            field=lambda _: velocity,
-            advance=policy.space.advance,
-            lyapunov=lyapunov,
-            rate=lambda states, value: scale * rate(states, value),
-        )
-        h = GuardedEuler().step(scaled, x, h).taken
-    return velocity * (h / dt).unsqueeze(-1), h
 
 
 def converged_at(states: Tensor, target: Tensor, tolerance: float) -> Tensor:

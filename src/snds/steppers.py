@@ -19,7 +19,7 @@ import torch
 from torch import Tensor
 
 from snds.policy import Policy
-from snds.spaces import Euclidean
+from snds.spaces import Euclidean, Space
 
 __all__ = [
     "RK4",
@@ -35,6 +35,8 @@ __all__ = [
     "euclidean_advance",
     "guarded_step",
     "policy_guard",
+    "safe_velocity",
+    "speed_scale",
 ]
 
 #: A velocity field, states (B, m) -> velocities (B, k).
@@ -155,6 +157,7 @@ class Stepper(ABC):
         gammas: Tensor | None = None,
         value: Tensor | None = None,
         first: tuple[Tensor, Tensor] | None = None,
+        held: Tensor | None = None,
     ) -> Step:
         """One step of each state for its own duration h.
 
@@ -167,6 +170,9 @@ class Stepper(ABC):
             gammas: With them and a scene, every body's Gamma at x, (B, K).
             value: V at x, (B,), if known.
             first: The full steps ``advance(x, h, velocity)`` and V there, if known.
+            held: Rows, (B,) bool, that a static scene's guard held at this same state
+                before: the same state, velocity and scene hold them again, so they are
+                held without trying the halvings (steppers without a scene ignore it).
         """
 
 
@@ -175,7 +181,19 @@ class Stepper(ABC):
 class Euler(Stepper):
     """The explicit Euler step along the space: :math:`x \\oplus h \\pi(x)`."""
 
-    def step(self, dynamics, x, h, *, t=0.0, velocity=None, gammas=None, value=None, first=None):
+    def step(
+        self,
+        dynamics,
+        x,
+        h,
+        *,
+        t=0.0,
+        velocity=None,
+        gammas=None,
+        value=None,
+        first=None,
+        held=None,
+    ):
         if velocity is None:
             velocity, _ = dynamics.velocity(x, t)
         return Step(dynamics.advance(x, h, velocity), h, None, velocity)
@@ -186,7 +204,19 @@ class Euler(Stepper):
 class RK4(Stepper):
     """The classical fourth-order Runge-Kutta step, for states in R^n without a scene."""
 
-    def step(self, dynamics, x, h, *, t=0.0, velocity=None, gammas=None, value=None, first=None):
+    def step(
+        self,
+        dynamics,
+        x,
+        h,
+        *,
+        t=0.0,
+        velocity=None,
+        gammas=None,
+        value=None,
+        first=None,
+        held=None,
+    ):
         if dynamics.advance is not euclidean_advance or dynamics.scene is not None:
             raise ValueError("RK4 integrates states in R^n only; use Euler on other spaces")
         field, dt = dynamics.field, h.unsqueeze(-1)
@@ -217,9 +247,21 @@ class GuardedEuler(Stepper):
     sufficient: float = 0.5
     max_halvings: int = 30
 
-    def step(self, dynamics, x, h, *, t=0.0, velocity=None, gammas=None, value=None, first=None):
+    def step(
+        self,
+        dynamics,
+        x,
+        h,
+        *,
+        t=0.0,
+        velocity=None,
+        gammas=None,
+        value=None,
+        first=None,
+        held=None,
+    ):
         if dynamics.scene is not None:
-            return self._avoiding(dynamics, x, h, t=t, velocity=velocity, gammas=gammas)
+            return self._avoiding(dynamics, x, h, t=t, velocity=velocity, gammas=gammas, held=held)
         if velocity is None:
             velocity = dynamics.field(x)
         if dynamics.lyapunov is None:
@@ -247,6 +289,7 @@ class GuardedEuler(Stepper):
         t: float,
         velocity: Tensor | None,
         gammas: Tensor | None,
+        held: Tensor | None,
     ) -> Step:
         now = dynamics.scene.at(t)
         if velocity is None or gammas is None:
@@ -274,13 +317,17 @@ class GuardedEuler(Stepper):
 
         candidate = x + h.unsqueeze(-1) * velocity
         pending = torch.arange(len(x))
-        pending = pending[~safe(pending, candidate)]
+        if held is not None:
+            pending = pending[~held]
+        pending = pending[~safe(pending, candidate[pending])]
         for _ in range(self.max_halvings):
             if len(pending) == 0:
                 break
             h[pending] = 0.5 * h[pending]
             candidate[pending] = x[pending] + h[pending].unsqueeze(-1) * velocity[pending]
             pending = pending[~safe(pending, candidate[pending])]
+        if held is not None:
+            pending = torch.cat([pending, held.nonzero()[:, 0]])
         h[pending] = 0.0
         candidate[pending] = x[pending]
         return Step(candidate, h, None, velocity)
@@ -360,3 +407,66 @@ def guarded_step(
         new[pending] = lyapunov(candidate[pending])
         pending = pending[failing(pending)]
     return candidate, h, new
+
+
+def speed_scale(space: Space, velocity: Tensor, max_speed: float | None) -> Tensor:
+    r"""The factor :math:`s = \min(1, v_{max} / |v_p|)` of each velocity (B, tangent_dim)
+    that brings the speed of its positions :math:`|v_p|` (the first ``space.position_dim``
+    numbers: a pose's linear velocity, a phase model's positions) down to ``max_speed``, shape
+    (B,); 1 everywhere for None.
+
+    Scaling the whole velocity by :math:`s > 0` keeps the guarantee: :math:`\nabla V^\top
+    (s \pi) \le -s a(x) < 0` (docs/guarantee.md, "Speed limit").
+    """
+    if max_speed is None:
+        return torch.ones_like(velocity[:, 0])
+    if not max_speed > 0:
+        raise ValueError(f"max_speed must be positive, got {max_speed}")
+    speed = velocity[:, : space.position_dim].norm(dim=-1)
+    return torch.where(speed > max_speed, max_speed / torch.where(speed > 0, speed, 1.0), 1.0)
+
+
+@torch.no_grad()
+def safe_velocity(
+    policy: Policy, x: Tensor, dt: float, *, max_speed: float | None = None, scene=None
+) -> tuple[Tensor, Tensor]:
+    """The policy's velocities at states x (B, space.dim), each scaled by h / dt for the
+    guarded step h <= dt along its space (:class:`~snds.steppers.GuardedEuler`), and first,
+    with ``max_speed``, by :func:`speed_scale`; with a ``scene`` (positions only), modulated
+    around its obstacles and shortened so that the step stays out of them.
+
+    A controller that holds a velocity for one period dt moves the state by about
+    ``policy.space.advance(x, dt, velocity)``; scaled so, that step meets the guard's
+    condition, and a stiff field cannot make a robot chatter on a discrete cycle at constant
+    V. A policy without V keeps its velocities (h = dt) unless a scene shortens them. Under a
+    speed limit the velocity s pi promises the decrease rate s a(x), and the guard asks that
+    of it.
+
+    Arguments:
+        policy: The policy.
+        x: States, shape (B, space.dim), user units.
+        dt: The control period, seconds.
+        max_speed: Largest speed of the positions, user units per second (None: no limit).
+        scene: Obstacles (:class:`snds.obstacles.Scene`), or None.
+
+    Returns:
+        The scaled velocities, shape (B, space.tangent_dim), and h, shape (B,).
+    """
+    h = torch.full_like(x[:, 0], dt)
+    if scene is not None:
+        step = GuardedEuler(max_halvings=40).step(Dynamics.of(policy, scene=scene), x, h)
+        return step.velocity * (step.taken / dt).unsqueeze(-1), step.taken
+    velocity = policy(x)
+    scale = speed_scale(policy.space, velocity, max_speed)
+    velocity = velocity * scale.unsqueeze(-1)
+    if policy.stable:
+        lyapunov, rate = policy_guard(policy)
+        # The velocity is evaluated once: the guarded step only asks for it at x.
+        scaled = Dynamics(
+            field=lambda _: velocity,
+            advance=policy.space.advance,
+            lyapunov=lyapunov,
+            rate=lambda states, value: scale * rate(states, value),
+        )
+        h = GuardedEuler().step(scaled, x, h).taken
+    return velocity * (h / dt).unsqueeze(-1), h
