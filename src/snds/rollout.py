@@ -204,7 +204,7 @@ def rollout(
         duration: A row stops once its time reaches this (fixed steps).
         until: A rule states (B, m) -> (B,) bool (such as an :class:`Arrival`): the rollout
             ends at the first check, every ``check_every`` steps, at which it holds for every
-            row.
+            row (or the row is held by a static scene's guard, for good).
         check_every: Steps between checks of ``until``.
         control: Error-controlled adaptive steps (:class:`StepControl`), which need
             ``arrival``.
@@ -258,7 +258,11 @@ def rollout(
         states.append(x)
         times.append(time)
         taken.append(moved)
-        if until is not None and len(taken) % check_every == 0 and bool(until(x).all()):
+        if until is not None and len(taken) % check_every == 0:
+            # A row a static scene holds will not move again: it has ended as well.
+            ended = until(x) if held is None else until(x) | held
+            if bool(ended.all()):
+                break
             break
     taken_t = torch.stack(taken) if taken else h.new_zeros((0, len(x0)))
     return Rollout(

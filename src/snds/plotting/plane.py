@@ -39,7 +39,6 @@ from snds.plotting.draw import (
 )
 from snds.plotting.rollouts import rollouts_until_arrival
 from snds.policy import Policy
-from snds.rollout import rollout_numpy
 from snds.steppers import GuardedEuler
 
 __all__ = [
@@ -254,7 +253,8 @@ def plot_obstacles(
     """Streamlines of a policy modulated by obstacles (:mod:`snds.obstacles`), with them.
 
     The obstacles are filled grey, their margins dashed; rollouts are guarded
-    (:class:`~snds.steppers.GuardedEuler` with the scene) for 3x the longest demonstration, from the
+    (:class:`~snds.steppers.GuardedEuler` with the scene) until they arrive or are held, for 3x
+    the longest demonstration at most (:func:`rollouts_until_arrival`), from the
     demonstrations' starts (solid) and from ``random_starts`` free starts in the view
     (dashed). States with more than two coordinates are shown in the slice through the target.
 
@@ -279,11 +279,15 @@ def plot_obstacles(
     random = candidates[free][:random_starts]
     starts = np.stack([demo.positions[0] for demo in demos])
     starts = starts[scene.free(torch.as_tensor(starts)).numpy()]
-    dt = demos.mean_dt()
-    steps = int(3 * demos.max_duration() / dt)
     # One batch for both sets of starts: a step costs the same for 8 states as for 15.
-    paths = rollout_numpy(
-        policy, np.concatenate([starts, random]), dt=dt, steps=steps, stepper=AVOIDING, scene=scene
+    paths, _ = rollouts_until_arrival(
+        policy,
+        demos,
+        np.concatenate([starts, random]),
+        dt=demos.mean_dt(),
+        durations=3.0,
+        stepper=AVOIDING,
+        scene=scene,
     )
     rollouts, perturbed = (paths[: len(starts)] if len(starts) else None), paths[len(starts) :]
     fig, ax = new_figure(x1, x2)
