@@ -181,19 +181,7 @@ class Stepper(ABC):
 class Euler(Stepper):
     """The explicit Euler step along the space: :math:`x \\oplus h \\pi(x)`."""
 
-    def step(
-        self,
-        dynamics,
-        x,
-        h,
-        *,
-        t=0.0,
-        velocity=None,
-        gammas=None,
-        value=None,
-        first=None,
-        held=None,
-    ):
+    def step(self, dynamics, x, h, *, t=0.0, velocity=None, **unused):
         if velocity is None:
             velocity, _ = dynamics.velocity(x, t)
         return Step(dynamics.advance(x, h, velocity), h, None, velocity)
@@ -204,19 +192,7 @@ class Euler(Stepper):
 class RK4(Stepper):
     """The classical fourth-order Runge-Kutta step, for states in R^n without a scene."""
 
-    def step(
-        self,
-        dynamics,
-        x,
-        h,
-        *,
-        t=0.0,
-        velocity=None,
-        gammas=None,
-        value=None,
-        first=None,
-        held=None,
-    ):
+    def step(self, dynamics, x, h, *, velocity=None, **unused):
         if dynamics.advance is not euclidean_advance or dynamics.scene is not None:
             raise ValueError("RK4 integrates states in R^n only; use Euler on other spaces")
         field, dt = dynamics.field, h.unsqueeze(-1)
