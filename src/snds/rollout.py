@@ -263,7 +263,6 @@ def rollout(
             ended = until(x) if held is None else until(x) | held
             if bool(ended.all()):
                 break
-            break
     taken_t = torch.stack(taken) if taken else h.new_zeros((0, len(x0)))
     return Rollout(
         torch.stack(states),
