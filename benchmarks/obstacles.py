@@ -43,6 +43,7 @@ from snds.data import load_demonstrations, load_lasa
 from snds.io import to_jsonable
 from snds.models import load_model
 from snds.obstacles import Box, Scene, Sphere, check_obstacles
+from snds.stability import CheckConfig
 
 PAPER8 = list(MOTION_GROUPS["paper8"])
 FRACTIONS = {1: (0.5,), 2: (0.35, 0.65), 3: (0.3, 0.5, 0.7)}
@@ -89,7 +90,7 @@ def box_on_path(demos) -> Scene:
 
 def run(name: str, model: Path, demos, scene: Scene, rollouts: int) -> dict:
     policy, _ = load_model(model)
-    report = check_obstacles(policy, demos, scene, rollouts=rollouts, seed=0)
+    report = check_obstacles(policy, demos, scene, config=CheckConfig(rollouts=rollouts, seed=0))
     record = {"task": name, "model": str(model), **report.to_dict()}
     (OUT / f"{name}.json").write_text(json.dumps(to_jsonable(record), indent=1))
     r, d = report.random, report.demos

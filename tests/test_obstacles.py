@@ -20,8 +20,6 @@ from snds.obstacles import (
     Scene,
     Sphere,
     Workspace,
-    avoid_step,
-    avoiding_rollout,
     check_obstacles,
     load_scene,
     modulate_twist,
@@ -29,8 +27,13 @@ from snds.obstacles import (
     parse_workspace,
 )
 from snds.policy import Policy
+from snds.rollout import rollout
+from snds.stability import CheckConfig
+from snds.steppers import Dynamics, GuardedEuler
 
 from conftest import make_policy, spiral_demos
+
+AVOIDING = GuardedEuler(max_halvings=40)
 
 
 class _Quadratic(torch.nn.Module):
@@ -170,7 +173,11 @@ def test_a_guarded_step_never_ends_inside_an_obstacle(name):
         x.shape[-1], field=lambda s: 1e3 * (centre - s) * (1 - 2 * torch.rand(1).item())
     )
     # WHEN each state takes a guarded step
-    nxt, h, _ = avoid_step(policy, scene, x, dt=1.0)
+    nxt = (
+        GuardedEuler(max_halvings=40)
+        .step(Dynamics.of(policy, scene=scene), x, torch.ones(len(x), dtype=x.dtype))
+        .states
+    )
     # THEN every state reached is in free space (Gamma > 1), a held state included
     assert bool(scene.free(nxt).all())
     assert bool((scene.clearances(nxt) > torch.tensor([b.margin for b in scene.bodies])).all())
@@ -183,7 +190,7 @@ def test_discrete_rollouts_from_near_the_boundaries_never_penetrate(name):
     x0 = near_boundary(scene, 60, 0.05, seed=3)
     policy = FieldPolicy(x0.shape[-1])
     # WHEN rolled out with a coarse step
-    states, _ = avoiding_rollout(policy, scene, x0, dt=0.3, steps=60)
+    states = rollout(policy, x0, dt=0.3, steps=60, stepper=AVOIDING, scene=scene).states
     # THEN no state of any rollout is within any margin
     flat = states.reshape(-1, x0.shape[-1])
     assert bool(scene.free(flat).all())
@@ -243,7 +250,7 @@ def test_linear_field_reaches_the_target_around_obstacles():
     demos = line_demos(2, (8.0, 2.0))
     scene = SCENES_2D["three apart"]
     # WHEN the stability report under obstacles runs (random free starts, demo starts)
-    report = check_obstacles(FieldPolicy(2), demos, scene, rollouts=300)
+    report = check_obstacles(FieldPolicy(2), demos, scene, config=CheckConfig(rollouts=300))
     # THEN none penetrates, the clearance keeps the margin, and all but saddle starts arrive
     assert report.random.penetrated == 0 and report.demos.penetrated == 0
     assert report.random.min_clearance >= report.random.margin
@@ -260,7 +267,7 @@ def test_moving_obstacle_is_avoided_at_every_step():
     x0 = torch.tensor([[6.0, 0.5], [5.0, -1.0], [7.0, 1.0]], dtype=torch.float64)
     dt, steps = 0.02, 400
     # WHEN rolled out among it
-    states, _ = avoiding_rollout(FieldPolicy(2), scene, x0, dt=dt, steps=steps)
+    states = rollout(FieldPolicy(2), x0, dt=dt, steps=steps, stepper=AVOIDING, scene=scene).states
     # THEN every state is outside the ball as it is at that time, and they still arrive
     for k in range(steps + 1):
         assert bool(scene.at(k * dt).free(states[k]).all()), k

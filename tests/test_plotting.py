@@ -11,13 +11,13 @@ import torch
 from snds.data import Demonstration, Demonstrations, Normalization
 from snds.plotting import (
     Panel,
-    _plane,
     plot_all,
     plot_loss,
     plot_lyapunov,
     plot_panels,
     plot_rollout_lyapunov,
 )
+from snds.plotting.draw import plane_grid
 from snds.policy import PolicyConfig, StablePolicy
 
 TINY = PolicyConfig(hidden=(16,), fourier_features=8, lyapunov_hidden=(8,))
@@ -105,7 +105,7 @@ def test_slice_holds_other_coordinates_at_the_target() -> None:
         ),
         base.target + shift,
     )
-    (x1, x2), points = _plane(demos)
+    (x1, x2), points = plane_grid(demos)
     # THEN x3, x4 sit at the target, and the view contains the data and the target with room
     assert np.all(points[:, 2:] == demos.target[2:])
     data = demos.positions()[:, :2]

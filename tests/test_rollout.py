@@ -2,7 +2,8 @@ import math
 
 import torch
 
-from snds.rollout import converged_at, guarded_rollout, guarded_step, policy_guard, rollout
+from snds.rollout import converged_at, guarded_step, policy_guard, rollout
+from snds.steppers import RK4, Dynamics, Euler, GuardedEuler
 
 from conftest import linear_policy, make_policy
 
@@ -15,10 +16,10 @@ def test_euler_and_rk4_orders_on_closed_form():
     # x' = -x has x(t) = x0 exp(-t): Euler's error is O(dt), RK4's O(dt^4).
     x0 = torch.ones(1, 1, dtype=torch.float64)
     errors = {}
-    for method in ("euler", "rk4"):
+    for method, stepper in (("euler", Euler()), ("rk4", RK4())):
         errs = []
         for steps in (20, 40):
-            path = rollout(linear, x0, dt=1.0 / steps, steps=steps, method=method)
+            path = rollout(linear, x0, dt=1.0 / steps, steps=steps, stepper=stepper).states
             errs.append(abs(path[-1].item() - math.exp(-1.0)))
         errors[method] = math.log2(errs[0] / errs[1])
     assert 0.9 < errors["euler"] < 1.1
@@ -35,10 +36,11 @@ def test_guarded_rollout_decreases_v_at_every_step(spiral):
     def lyapunov(x):
         return policy.lyapunov(policy.to_model(x))
 
-    result = guarded_rollout(policy, lyapunov, x0, dt=0.5, steps=40)
+    dynamics = Dynamics(field=policy, lyapunov=lyapunov)
+    result = rollout(dynamics, x0, dt=0.5, steps=40, stepper=GuardedEuler())
     values = torch.stack([lyapunov(s) for s in result.states])
     assert (values[1:] <= values[:-1]).all()
-    assert (result.steps_taken <= 0.5).all()
+    assert (result.taken <= 0.5).all()
 
 
 def test_converged_at_finds_the_first_index_that_stays_inside():
@@ -53,15 +55,15 @@ def test_plain_euler_cycles_where_the_guarded_step_converges():
     policy = linear_policy(5.0)
     lyapunov, rate = policy_guard(policy)
     x0 = torch.tensor([[1.0, 2.0], [-3.0, 0.5]], dtype=torch.float64)
-    plain = rollout(policy, x0, dt=0.4, steps=50)
+    plain = rollout(policy, x0, dt=0.4, steps=50, guard=False).states
     torch.testing.assert_close(plain[-1], x0)  # 50 sign flips: back at the start
-    guarded = guarded_rollout(policy, lyapunov, x0, dt=0.4, steps=50, rate=rate)
+    guarded = rollout(policy, x0, dt=0.4, steps=50, stepper=GuardedEuler())
     values = torch.stack([lyapunov(s) for s in guarded.states])
     # Armijo: each accepted step h keeps at least half the promised decrease a(x) h.
-    promised = 0.5 * guarded.steps_taken * rate(guarded.states[:-1], values[:-1])
+    promised = 0.5 * guarded.taken * rate(guarded.states[:-1], values[:-1])
     assert (values[1:] <= values[:-1] - promised + 1e-15).all()
     # Every first step is shortened: the nominal 0.4 s leaves V where it was.
-    assert (guarded.steps_taken[0] <= 0.2).all()
+    assert (guarded.taken[0] <= 0.2).all()
     assert guarded.states[-1].abs().max() < 1e-12
 
 

@@ -17,6 +17,7 @@ from snds.se3 import PosePolicy, make_pose_policy
 from snds.so3 import left_jacobian, left_jacobian_inverse, relative_rotvec, rotate
 from snds.spaces import SE3
 from snds.stability import CheckConfig, check_stability
+from snds.steppers import Dynamics
 from snds.train import TrainConfig, fit
 
 from conftest import SMALL, spiral_demos
@@ -136,14 +137,16 @@ def _spinning(x: torch.Tensor) -> torch.Tensor:
 def test_unit_norm_kept_over_ten_thousand_steps():
     # GIVEN random start poses turned fast (about 3 rad/s) for 10,000 steps, in float64
     x0 = torch.cat([torch.randn(64, 3, dtype=torch.float64), random_quats(64, 5)], -1)
-    states = rollout(_spinning, x0, dt=0.01, steps=10_000, advance=SE3().advance)
+    states = rollout(
+        Dynamics(field=_spinning, advance=SE3().advance), x0, dt=0.01, steps=10_000
+    ).states
     # THEN every quaternion is unit
     assert (states[..., 3:].norm(dim=-1) - 1).abs().max() < 1e-12
 
 
 def test_untrained_policy_keeps_unit_norm(untrained):
     x0 = torch.cat([torch.randn(8, 3, dtype=torch.float64), random_quats(8, 8)], -1)
-    states = rollout(untrained, x0, dt=0.05, steps=200, advance=untrained.space.advance)
+    states = rollout(untrained, x0, dt=0.05, steps=200).states
     assert (states[..., 3:].norm(dim=-1) - 1).abs().max() < 1e-12
 
 

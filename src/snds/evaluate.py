@@ -15,6 +15,7 @@ from snds.data.demonstrations import Split
 from snds.metrics import dtw, final_distance, frechet, swept_error_area, velocity_mse
 from snds.parallel import torch_threads
 from snds.policy import Policy, float64_copy
+from snds.rollout import rollout
 from snds.spaces import Phased, Space
 from snds.stability import CheckConfig, StabilityReport, check_stability
 from snds.threads import fastest_threads
@@ -100,7 +101,6 @@ def reproduce(
     if not indices:
         return []
     device = getattr(policy, "center", torch.empty(0)).device
-    advance = policy.space.advance
     # The length of each path_reference, without resampling the demonstration to find it.
     samples = [_samples(demos[i], min_samples) - 1 for i in indices]
     periods = [demos[i].duration / k for i, k in zip(indices, samples)]
@@ -108,15 +108,8 @@ def reproduce(
     dt = torch.tensor(periods, dtype=torch.float64, device=device)
     starts = np.stack([demos[i].states[0] for i in indices])
     x = torch.tensor(starts, dtype=torch.float64, device=device)
-    remaining = torch.tensor(steps, device=device)
-    states = [x]
-    with torch.no_grad():
-        for _ in range(max(steps)):
-            moving = (remaining > 0).unsqueeze(-1)
-            x = torch.where(moving, advance(x, dt, policy(x)), x)
-            remaining = remaining - 1
-            states.append(x)
-    paths = torch.stack(states, dim=1).cpu().numpy()
+    result = rollout(policy, x, dt=dt, steps=torch.tensor(steps, device=device), guard=False)
+    paths = result.states.transpose(0, 1).cpu().numpy()
     return [paths[row, : k + 1] for row, k in enumerate(steps)]
 
 

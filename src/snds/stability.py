@@ -14,9 +14,23 @@ import numpy as np
 import torch
 
 from snds.arrival import ARRIVAL_TOLERANCE
+from snds.decrease import decrease_violations, largest_safe_step
 from snds.errors import ConfigError
-from snds.policy import FieldTerms, Policy, float64_copy
-from snds.rollout import guarded_step, policy_guard
+from snds.policy import Policy, float64_copy
+from snds.rollout import Arrival, Rollout, StepControl, rollout
+from snds.steppers import GuardedEuler
+
+__all__ = [
+    "ROLLOUTS",
+    "SAMPLES",
+    "CheckConfig",
+    "StabilityReport",
+    "check_rollouts",
+    "check_stability",
+    "decrease_violations",
+    "largest_safe_step",
+    "settle_level",
+]
 
 #: Random starts of the stability check by default. If every one of N independent uniform
 #: starts converges, the fraction of the start box from which the policy does not converge is
@@ -29,7 +43,15 @@ SAMPLES = 50_000
 
 @dataclass(frozen=True, kw_only=True)
 class CheckConfig:
-    """The settings of :func:`check_stability`, with the library's defaults.
+    """The settings of :func:`check_stability` and of the check under obstacles
+    (:func:`snds.obstacles.check_obstacles`), with the library's defaults.
+
+    One configuration serves both checks, because what they report means the same: with
+    ``rollouts`` = 500 starts that all arrive, the fraction of the box from which the policy
+    does not arrive is below 0.6% with 95% confidence, obstacles or not; and a local error of
+    3e-3 extents per step keeps arrival times and end points to well within the arrival
+    tolerance (1e-2 extents) in both. These are the defaults the check without obstacles has
+    always had, so its results are unchanged.
 
     Attributes:
         rollouts: Random starts (with ``grid``, at least this many grid points).
@@ -43,7 +65,7 @@ class CheckConfig:
         tolerance_factor: Arrival tolerance, in error scales (the extent for positions; pi
             radians for angles): :data:`snds.arrival.ARRIVAL_TOLERANCE`.
         min_step_budget: Fewest integration steps a rollout may take before it counts as
-            still moving (see :func:`_roll_out_and_settle`): a step the guard shortens is one
+            still moving (see :func:`check_rollouts`): a step the guard shortens is one
             step, so a stiff field runs out of steps before the cap.
         sample_box_factor: Half-width of the decrease samples' box, in extents.
         step_tolerance_factor: Local error allowed per adaptive step, in extents.
@@ -84,7 +106,7 @@ class StabilityReport:
         rollouts: Number of rollouts from random starts.
         converged_fraction: Fraction that ended within the tolerance of the target.
         max_final_distance: Largest distance of a rollout's end position from the target's
-            (user units); a settled rollout (see :func:`_roll_out_and_settle`) ends where it
+            (user units); a settled rollout (see :func:`check_rollouts`) ends where it
             settled.
         max_final_errors: The largest end error of each component of the policy's space
             (:meth:`snds.spaces.Space.errors`: "distance", and "angle" in radians for poses).
@@ -161,118 +183,6 @@ class StabilityReport:
 
 
 @torch.no_grad()
-def decrease_violations(
-    policy: Policy, x: torch.Tensor, *, rtol: float = 1e-9, terms: FieldTerms | None = None
-) -> int:
-    r"""Counts states where :math:`\nabla V^\top \pi \le -a(x)` fails beyond rounding.
-
-    Checked in model coordinates (a positive rescaling of user units, so the sign of the
-    condition is the same). The tolerance is relative to the size of the terms that cancel,
-    :math:`\|\nabla V\| \|f\| + a`, since the projection makes the two sides equal whenever
-    it is active.
-
-    Arguments:
-        policy: A stable policy, evaluated in the dtype of ``x`` (use float64).
-        x: States in user units, shape (B, n).
-        rtol: Relative rounding tolerance.
-        terms: The policy's :meth:`~snds.policy.Policy.field_terms` at ``x`` in model
-            coordinates, if the caller has them.
-    """
-    xm = policy.to_model(x)
-    if terms is None:
-        terms = policy.field_terms(xm)
-    # A policy need not use the V it carries (behavioural cloning keeps it unused).
-    value, grad = (
-        (terms.value, terms.grad) if terms.value is not None else policy.lyapunov.value_and_grad(xm)
-    )
-    f = terms.nominal if terms.nominal is not None else policy.nominal(xm)
-    decay = policy.decay(value, xm)
-    lhs = (grad * terms.field).sum(-1)
-    scale = grad.norm(dim=-1) * f.norm(dim=-1) + decay
-    return int((lhs > -decay + rtol * scale).sum())
-
-
-@torch.no_grad()
-def largest_safe_step(
-    policy: Policy,
-    x: torch.Tensor,
-    *,
-    upper: float,
-    iterations: int = 60,
-    terms: FieldTerms | None = None,
-) -> float:
-    r"""The largest Euler step h with :math:`V(x + h \pi(x)) \le V(x)` at every given state.
-
-    Along a descent direction of a convex V, :math:`h \mapsto V(x + h \pi(x))` is convex and
-    starts decreasing, so the steps that decrease V form an interval :math:`(0, h^*(x))`; the
-    largest step safe at every state is :math:`\min_x h^*(x)`, found by halving, then bisection
-    on one shared h. For a V that is not convex (a warped V, SDS-EF's) the safe steps
-    of a state need not form an interval, and the answer is a heuristic: every given state is
-    safe at the step returned, not necessarily at every shorter one.
-
-    Arguments:
-        policy: A stable policy, in the dtype of ``x``.
-        x: States in user units, shape (B, n); the target itself is skipped.
-        upper: The largest step tried, in seconds.
-        iterations: Halvings of ``upper`` tried before giving up.
-        terms: The policy's :meth:`~snds.policy.Policy.field_terms` at ``x`` in model
-            coordinates, if the caller has them.
-
-    Returns:
-        The step in seconds, to a relative precision of 1e-7 (``upper`` if every state is
-        safe at ``upper``; 0 if none is safe at ``upper`` / 2^iterations).
-    """
-    xm = policy.to_model(x)
-    away = xm.norm(dim=-1) > 0
-    xm = xm[away]
-    if terms is None:
-        value, velocity = policy.lyapunov(xm), policy.field(xm)
-    else:
-        value, velocity = terms.value[away], terms.field[away]
-    # At tiny steps V's change falls below the rounding error of V itself (a Bregman
-    # difference of terms of the size of g, which may be 1e3 and more), which may show as a
-    # rise: seen at 5.5e-8 V near the target of a trained model. An overshooting step raises V
-    # by a fraction of V itself, far more than this allowance, and the relative part moves
-    # the bisection's answer by about 1e-7 of it.
-    allowance = 1e-7 * value + 1e-12
-
-    def safe(h: float, rows: torch.Tensor | slice = slice(None)) -> torch.Tensor:
-        """Which of the states ``rows`` a step of h seconds keeps from raising V."""
-        moved = xm[rows] + (h / policy.time) * velocity[rows]
-        return policy.lyapunov(moved) <= value[rows] + allowance[rows]
-
-    if safe(upper).all():
-        return upper
-    # Bracket by halving (a safe step is usually within a few octaves of ``upper``).
-    high, unsafe = upper, ~safe(upper)
-    for _ in range(iterations):
-        low = 0.5 * high
-        at_low = safe(low)
-        if at_low.all():
-            break
-        high, unsafe = low, ~at_low
-    else:
-        return 0.0
-    # Bisect the octave to a relative precision of 1e-7 on the states unsafe at ``high``
-    # only: the others are safe on all of (0, high] when V is convex along the step. For a
-    # V that is not, the answer is checked on every state, and the search goes on below it
-    # until every state is safe there.
-    rows = unsafe.nonzero()[:, 0]
-    while True:
-        while high - low > 1e-7 * low:
-            middle = 0.5 * (low + high)
-            low, high = (middle, high) if safe(middle, rows).all() else (low, middle)
-        at_low = safe(low)
-        if at_low.all():
-            return low
-        high, low, rows = low, 0.5 * low, (~at_low).nonzero()[:, 0]
-        while not safe(low, rows).all():
-            high, low = low, 0.5 * low
-            if low < upper * 2.0**-iterations:
-                return 0.0
-
-
-@torch.no_grad()
 def check_stability(
     policy: Policy, demos: Any, config: CheckConfig = CheckConfig()
 ) -> StabilityReport:
@@ -290,7 +200,7 @@ def check_stability(
     ``tolerance_factor`` x each error scale of the target (the extent; pi radians for an angle):
     the robot must get there in useful time, not only asymptotically. Rollouts of a policy with
     a Lyapunov function stop early once they are provably settled (see
-    :func:`_roll_out_and_settle`).
+    :func:`check_rollouts`).
     Everything runs in float64.
 
     Arguments:
@@ -315,13 +225,14 @@ def check_stability(
     device = getattr(policy, "center", torch.empty(0)).device
     starts = torch.as_tensor(points, device=device)
     target_t = torch.tensor(target, device=device)
-    arrivals = _roll_out_and_settle(
+    arrivals = check_rollouts(
         policy, starts, target_t, dt=dt, horizon=horizon, extent=extent, config=config
     )
     tolerance = config.tolerance_factor
-    errors = arrivals.final_errors  # (B, k), in error scales
+    scales_t = torch.as_tensor(space.error_scales(extent), device=device)
+    errors = space.errors(arrivals.final, target_t) / scales_t  # (B, k), in error scales
     outside = (errors > tolerance).any(dim=-1) | ~torch.isfinite(errors).all(dim=-1)
-    attractors, moving = _stalled(policy, demos, arrivals.final_state[outside], extent=extent)
+    attractors, moving = _stalled(policy, demos, arrivals.final[outside], extent=extent)
     times = arrivals.arrival_time[~outside & ~arrivals.arrival_time.isnan()]
     median = float(times.median()) if len(times) else float("nan")
     slowest = float(times.max()) if len(times) else float("nan")
@@ -329,7 +240,7 @@ def check_stability(
     safe_dt = safe_dt_rollouts = float("nan")
     if policy.stable:
         upper = 10.0 * demos.max_duration()
-        visited = arrivals.visited
+        visited = arrivals.states
         if len(visited) > config.chunk:
             pick = rng.choice(len(visited), config.chunk, replace=False)
             visited = visited[torch.as_tensor(pick, device=device)]
@@ -450,21 +361,8 @@ def settle_level(lyapunov: torch.nn.Module, radius: float, *, dim: int, count: i
     return 0.5 * float(lyapunov((radius * directions).to(like)).min())
 
 
-@dataclass(frozen=True)
-class _Arrivals:
-    final_state: torch.Tensor  # (B, dim)
-    final_errors: torch.Tensor  # (B, k), in error scales
-    arrival_time: torch.Tensor  # (B,), NaN if not within the tolerance at the end
-    shortened: torch.Tensor  # (B,) bool: plain Euler at dt would not decrease V on the way
-    visited: torch.Tensor  # (M, dim), states along the rollouts (every ``every`` steps)
-    steps: int  # integration steps of the longest rollout
-    out_of_steps: torch.Tensor  # (B,) bool: stopped by the step budget before the horizon
-    budget: int  # the step budget of one rollout
-    v_rises: int  # accepted steps at which V rose after every halving
-
-
 @torch.no_grad()
-def _roll_out_and_settle(
+def check_rollouts(
     policy: Policy,
     starts: torch.Tensor,
     target: torch.Tensor,
@@ -473,155 +371,66 @@ def _roll_out_and_settle(
     horizon: float,
     extent: float,
     config: CheckConfig,
-    every: int = 10,
-) -> _Arrivals:
-    r"""Adaptive guarded Euler rollouts that stop integrating each start once it has settled.
+    scene: Any = None,
+) -> Rollout:
+    r"""The check's rollouts: adaptive guarded Euler (:func:`snds.rollout.rollout` with a
+    :class:`~snds.rollout.StepControl`) that stop integrating each start once it has settled.
 
-    Each rollout takes Euler steps along the policy's space (:meth:`~snds.spaces.Space.advance`)
-    whose length follows the local error: the estimate :math:`e = \tfrac{h}{2} |\pi(x_{k+1}) -
-    \pi(x_k)|` (the leading term of Euler's local error, from the velocity the next step needs
-    anyway; each component in its scale, :meth:`~snds.spaces.Space.tangent_scales`) is kept
-    below ``step_tolerance_factor`` extents by rejecting a step that exceeds it and by growing
-    or shrinking the next one as :math:`h \sqrt{\text{tol} / e}`, between the data's step ``dt``
-    (always accepted, so the check is never slower than fixed steps of dt; horizon / 500 for
-    data sampled coarser) and horizon / 50. Where the field is smooth (far out, and on the final
-    approach) steps grow far beyond the data's period; in the demonstrations' bends they stay
-    near it; no step moves a state by more than 5% of its distance to the target, unless it is
-    no longer than dt. A policy with a Lyapunov function also takes the guarded step
-    (:func:`snds.rollout.guarded_step`, Armijo's condition on V), so V falls at every accepted
-    step. The sublevel set {V < c} of :func:`settle_level` lies inside the model-coordinate ball
-    whose image is within half of every tolerance (:meth:`~snds.policy.Policy.model_scale`), and
+    Each rollout takes Euler steps along the policy's space whose length follows the local
+    error, kept below ``step_tolerance_factor`` tangent scales, between the shortest standard
+    step (the data's step ``dt``, or horizon / 500 for data sampled coarser) and horizon /
+    50; no step moves a state by more than 5% of its distance to the target, unless it is no
+    longer than the shortest. A policy with a Lyapunov function takes the guarded step
+    (:class:`~snds.steppers.GuardedEuler`, Armijo's condition on V), so V falls at every
+    accepted step; with a ``scene`` the step also never ends inside an inflated obstacle. The
+    sublevel set {V < c} of :func:`settle_level` lies inside the model-coordinate ball whose
+    image is within half of every tolerance (:meth:`~snds.policy.Policy.model_scale`), and
     guarded steps never leave it: a start whose state enters it is settled and no longer
-    integrated, so the check costs the time rollouts take to arrive. A policy without a Lyapunov
-    function integrates to the horizon.
+    integrated (with a scene, only if no obstacle reaches that ball), so the check costs the
+    time rollouts take to arrive.
 
     A rollout takes at most as many accepted steps as fixed steps of the shortest standard
-    step (the smaller of dt and horizon / 50) would take to the horizon, and at least
-    ``min_step_budget`` (a step the guard shortens counts as one; a step rejected for its
-    error does not), so a field the guard must shorten everywhere costs a bounded time; the
-    rollouts stopped by this budget before the horizon are marked ``out_of_steps``.
-    States are recorded at the start and every ``every`` steps (``visited``); ``shortened``
-    marks the rollouts at one of whose recorded states plain Euler at the data's step ``dt``
-    would not have met the guard's condition.
+    step would take to the horizon, and at least ``min_step_budget``; those stopped by this
+    budget before the horizon are marked ``out_of_steps``. States are recorded at the start
+    and every 10 steps; ``shortened`` marks the rollouts at one of whose recorded states
+    plain Euler at ``dt`` would not have met the guard's condition.
     """
     space = policy.space
-    count = len(starts)
-    x = starts.clone()
-    like = {"dtype": x.dtype, "device": x.device}
-    error_scales = torch.as_tensor(space.error_scales(extent), **like)
-    tangent_scales = torch.as_tensor(space.tangent_scales(extent), **like)
     tolerance = config.tolerance_factor
-    step_tolerance, max_step = config.step_tolerance_factor, horizon / 50
-    # The shortest standard step: the data's, unless the data are sampled coarser than
-    # horizon / 500 (strokes of a few points), whose Euler steps would misplace arrival.
     min_step = min(dt, horizon / 500)
-
-    def errors(states: torch.Tensor) -> torch.Tensor:
-        return space.errors(states, target) / error_scales
-
-    time = torch.zeros(count, **like)
-    h = torch.full_like(time, min_step)
-    # Time since which each rollout has been within the tolerance (NaN while outside).
-    arrival = torch.zeros_like(time)
-    active = torch.arange(count, device=x.device)
-    visited = []
-    shortened = torch.zeros(count, dtype=torch.bool, device=x.device)
-    level = value = lyapunov = rate = None
-    # Counted on the device, read once at the end: no host sync per step.
-    rises = torch.zeros((), dtype=torch.long, device=x.device)
+    level = None
     if policy.stable:
         # The model-coordinate radius whose image lies within half of every tolerance.
         reach = policy.model_scale() / space.error_scales(extent)
         radius = 0.5 * tolerance / float(reach.max())
-        level = settle_level(policy.lyapunov, radius, dim=policy.dim)
-        lyapunov, rate = policy_guard(policy)
-        velocity, value = policy.velocity_and_value(x)
-    else:
-        velocity = policy(x)
-    arrival[(errors(x) > tolerance).any(dim=-1)] = float("nan")
-    # The budget of fixed steps at dt: steps the guard shortens still count as steps, so a
-    # field so stiff that the guard shrinks every step ends after as many steps as before.
-    budget = max(int(np.ceil(horizon / min_step)), config.min_step_budget)
-    taken = torch.zeros(count, dtype=torch.long, device=x.device)
-    steps = 0
-    while len(active):
-        xa, va, ha = x[active], velocity[active], h[active]
-        if steps % every == 0:
-            visited.append(xa.clone())
-            if lyapunov is not None:
-                # Would plain Euler at the data's step meet the guard's condition here?
-                before = value[active]
-                after = lyapunov(space.advance(xa, torch.full_like(ha, dt), va))
-                required = 0.5 * dt * rate(xa, before)
-                bad = ~((after <= before - required) & (after < before)) & (before > 0)
-                shortened[active[bad]] = True
-        # No step moves a state by more than 5% of its distance to the target (or takes
-        # longer than dt, or than horizon / 50 for data sampled coarser than that): relative
-        # accuracy on the final approach, and arrival times resolved to a twentieth of the
-        # time left. The last step ends exactly at the horizon.
-        distance = errors(xa).max(dim=-1).values
-        reach = 0.05 * distance / (va / tangent_scales).norm(dim=-1)
-        ha = torch.minimum(ha, reach.nan_to_num(nan=dt).clamp_min(min_step))
-        ha = torch.minimum(ha, horizon - time[active])
-        candidate = space.advance(xa, ha, va)
-        if value is not None:
-            before = value[active]
-            # V at the full step comes from the pass that gives the velocity there; only the
-            # steps the guard shortens need the velocity again.
-            v_new, new = policy.velocity_and_value(candidate)
-            full = ha
-            candidate, ha, new = guarded_step(
-                lambda _, v=va: v,
-                lyapunov,
-                xa,
-                dt=full,
-                rate=rate,
-                value=before,
-                advance=space.advance,
-                max_halvings=config.max_halvings,
-                first=(candidate, new),
-            )
-            shorter = (ha < full).nonzero()[:, 0]
-            if len(shorter):
-                v_new[shorter] = policy(candidate[shorter])
-        else:
-            v_new, new = policy(candidate), None
-        error = 0.5 * ha * ((v_new - va) / tangent_scales).norm(dim=-1)
-        # A step no longer than the data's is always accepted: at worst the check integrates
-        # as plain (guarded) Euler at dt, never slower.
-        accept = (error <= step_tolerance) | (ha <= min_step)
-        # A non-finite error (a diverging field without V) shrinks the step, to dt at least.
-        grow = (0.9 * (step_tolerance / error).sqrt()).nan_to_num(nan=0.2).clamp(0.2, 4.0)
-        proposed = torch.where(accept, ha * grow, ha * grow.clamp_max(0.9))
-        h[active] = proposed.clamp(min_step, max_step)
-        done = active[accept]
-        x[done], velocity[done] = candidate[accept], v_new[accept]
-        time[done] = time[done] + ha[accept]
-        taken[done] += 1
-        if value is not None:
-            # Only a step that ran out of halvings can raise V (V below 1e-12 is the target
-            # up to rounding).
-            rose = (new > before * (1 + 1e-9)) & (before > 1e-12) & accept
-            rises += rose.sum()
-            value[done] = new[accept]
-        outside = (errors(x[done]) > tolerance).any(dim=-1)
-        arrival[done[outside]] = float("nan")
-        entered = done[~outside & arrival[done].isnan()]
-        arrival[entered] = time[entered]
-        steps += 1
-        finished = (time[active] >= horizon * (1 - 1e-12)) | (taken[active] >= budget)
-        if level is not None:
-            finished = finished | (value[active] < level)
-        active = active[~finished]
-    out_of_steps = (taken >= budget) & (time < horizon * (1 - 1e-12))
-    return _Arrivals(
-        x,
-        errors(x),
-        arrival,
-        shortened,
-        torch.cat(visited),
-        steps,
-        out_of_steps,
-        budget,
-        int(rises),
+        if scene is None or not _reaches(scene, target, 0.5 * tolerance * extent):
+            level = settle_level(policy.lyapunov, radius, dim=policy.dim)
+    control = StepControl(
+        tolerance=config.step_tolerance_factor,
+        min_step=min_step,
+        max_step=horizon / 50,
+        horizon=horizon,
+        # Steps the guard shortens still count as steps, so a field so stiff that the guard
+        # shrinks every step ends after as many steps as fixed steps would take.
+        budget=max(int(np.ceil(horizon / min_step)), config.min_step_budget),
+        tangent_scales=torch.as_tensor(space.tangent_scales(extent)),
+        settle=level,
     )
+    arrival = Arrival.of(space, target, extent, tolerance=tolerance)
+    return rollout(
+        policy,
+        starts,
+        dt=dt,
+        stepper=GuardedEuler(max_halvings=config.max_halvings),
+        scene=scene,
+        control=control,
+        arrival=arrival,
+    )
+
+
+def _reaches(scene: Any, target: torch.Tensor, radius: float) -> bool:
+    """Whether any body of a scene modulates the field within ``radius`` of the target."""
+    generator = torch.Generator().manual_seed(0)
+    directions = torch.randn(256, len(target), generator=generator, dtype=target.dtype)
+    ball = target[None] + radius * directions / directions.norm(dim=-1, keepdim=True)
+    return bool(scene.influenced(ball).any()) or bool(scene.influenced(target[None])[0])

@@ -15,8 +15,9 @@ Routes (all JSON unless said; errors are ``{"error": "one line"}`` with a 4xx st
 * ``POST /api/jobs/{id}/field``: ``{"bounds": [x0, x1, y0, y1], "size": [nx, ny]}``: the
   policy's velocities and V on that grid.
 * ``POST /api/jobs/{id}/rollout``: ``{"start": [x, y], "pushes": [{"at": s, "by": [dx,
-  dy]}]?, "duration": s?, "dt": s?}``: a rollout with the guarded step
-  (:func:`snds.rollout.guarded_step`; plain Euler for BC), stopping at the target.
+  dy]}]?, "duration": s?, "dt": s?}``: a rollout (:func:`snds.rollout.rollout`) with the
+  guarded step (:class:`snds.steppers.GuardedEuler`; plain Euler for BC), stopping at the
+  target.
 * ``GET /api/jobs/{id}/model.zip``, ``/policy.onnx``, ``/strokes.csv``: downloads.
 * ``POST /api/strokes.csv``: strokes (JSON) to the CSV ``snds train --data`` reads;
   ``POST /api/strokes/upload`` (``text/csv``): such a CSV back to strokes.
@@ -73,7 +74,8 @@ from snds.io import to_jsonable
 from snds.models import load_model
 from snds.phase import Phase, start_rule
 from snds.policy import PolicyConfig, StablePolicy, float64_copy
-from snds.rollout import guarded_step, policy_guard
+from snds.rollout import policy_guard, rollout
+from snds.steppers import GuardedEuler
 
 __all__ = [
     "LOCAL_HOSTS",
@@ -382,39 +384,45 @@ def rollout_from(
         raise RequestError(
             422, f"duration / dt = {steps} steps, at most {max_steps}; take a longer dt"
         )
-    guard = policy_guard(policy) if policy.stable else None
     state = _states(job, np.reshape(start, (1, 2))) if phase is None else [[*start, *phase]]
     x = torch.as_tensor(np.asarray(state), dtype=torch.float64)
     # A push moves the position; a phase keeps its value.
     pad = [0.0] * (x.shape[1] - 2)
-    value = None
     t, times, states, shortened = 0.0, [0.0], [x[0, :2].tolist()], 0
     phases = [x[0, 2:].tolist()]
     pending = list(pushes)
+
+    def stop(x: torch.Tensor) -> torch.Tensor:
+        finite = torch.isfinite(x).all(dim=-1)
+        arrived = (x[:, :2] - target).norm(dim=-1) <= tolerance
+        return ~finite | (arrived if not pending else torch.zeros_like(finite))
+
+    used = 0
     # Until the duration: the guard's shorter steps take more of them (at most max_steps).
-    for _ in range(max_steps):
-        if t >= duration:
-            break
+    while used < max_steps and t < duration:
         while pending and pending[0][0] <= t:
             x = x + torch.as_tensor([*pending.pop(0)[1], *pad])
-            value = None
             times.append(t)
             states.append(x[0, :2].tolist())
             phases.append(x[0, 2:].tolist())
-        if guard is not None:
-            lyapunov, rate = guard
-            x, h, value = guarded_step(policy, lyapunov, x, dt=dt, rate=rate, value=value)
-            step = float(h[0])
-            shortened += step < dt
-        else:
-            x, step = x + dt * policy(x), dt
-        t += step
-        times.append(t)
-        states.append(x[0, :2].tolist())
-        phases.append(x[0, 2:].tolist())
-        if not bool(torch.isfinite(x).all()):
-            break
-        if not pending and float((x[0, :2] - target).norm()) <= tolerance:
+        # One piece of the rollout: to the next push, the end, or arrival.
+        until = min(duration, pending[0][0]) if pending else duration
+        piece = rollout(
+            policy,
+            x,
+            dt=dt,
+            steps=max_steps - used,
+            stepper=GuardedEuler(),
+            start_time=t,
+            duration=until,
+            until=stop,
+        )
+        times += piece.times[1:, 0].tolist()
+        states += piece.states[1:, 0, :2].tolist()
+        phases += piece.states[1:, 0, 2:].tolist()
+        shortened += int((piece.taken < dt).sum())
+        x, t, used = piece.final, float(piece.final_time[0]), used + piece.steps
+        if bool(stop(x)[0]):
             break
     distance = float((x[0, :2] - target).norm())
     return {
@@ -424,7 +432,7 @@ def rollout_from(
         "arrived": distance <= tolerance,
         "final_distance": distance,
         "tolerance": tolerance,
-        "integrator": "guarded euler" if guard is not None else "euler",
+        "integrator": "guarded euler" if policy.stable else "euler",
         "shortened_steps": shortened,
         "dt": dt,
     }

@@ -17,16 +17,16 @@ from matplotlib.figure import Figure
 
 from snds.data.demonstrations import Demonstrations
 from snds.data.poses import PoseDemonstrations
-from snds.plotting import (
+from snds.plotting.draw import (
     DEMO_COLOR,
     DPI,
     PERTURBED_COLOR,
     ROLLOUT_COLOR,
-    _despine,
-    _draw_demos,
-    _draw_scene,
-    _draw_target,
-    _save,
+    despine,
+    draw_demos,
+    draw_scene,
+    draw_target,
+    save_figure,
 )
 from snds.sim.arm import Arm
 from snds.sim.robots import get_robot
@@ -113,7 +113,7 @@ def plot_frames(result: SimResult, frames: list[np.ndarray], steps: np.ndarray, 
         label = f"t = {result.times[step]:.1f} s"
         ax.set_title(label + (" (pushed)" if step == pushed else ""), fontsize="small")
     fig.suptitle(_headline(result), fontsize="medium")
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def plot_path(result: SimResult, demos: Demonstrations | PoseDemonstrations | None, path) -> Path:
@@ -128,7 +128,7 @@ def plot_path(result: SimResult, demos: Demonstrations | PoseDemonstrations | No
         plane, distance = fig.subplots(1, 2, width_ratios=(1.25, 1.0))
     states = result.states
     if demos is not None:
-        _draw_demos(plane, demos, color=DEMO_COLOR)
+        draw_demos(plane, demos, color=DEMO_COLOR)
     pushed = None
     if result.push_time is not None:
         pushed = int(np.searchsorted(result.times, result.push_time))
@@ -151,7 +151,7 @@ def plot_path(result: SimResult, demos: Demonstrations | PoseDemonstrations | No
             zorder=4,
             label="end effector" if i == 0 else None,
         )
-    _draw_target(plane, result.placement.target)
+    draw_target(plane, result.placement.target)
     if result.config.obstacles is not None:
         _draw_obstacles_in_view(plane, result, demos)
     plane.set_aspect("equal", adjustable="datalim")
@@ -159,7 +159,7 @@ def plot_path(result: SimResult, demos: Demonstrations | PoseDemonstrations | No
     plane.set_ylabel("x2 (task units)")
     plane.set_title("path in the task's plane")
     plane.legend(frameon=False, fontsize="small", loc="best")
-    _despine(plane)
+    despine(plane)
 
     error = np.linalg.norm(result.positions - result.placement.origin, axis=1)
     _draw_error(distance, result, error, result.config.tolerance, recovery=True)
@@ -170,7 +170,7 @@ def plot_path(result: SimResult, demos: Demonstrations | PoseDemonstrations | No
         angle.set_ylabel("angle to target orientation (rad)")
         angle.set_title("orientation error")
     fig.suptitle(_headline(result), fontsize="medium")
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def _draw_obstacles_in_view(ax, result: SimResult, demos) -> None:
@@ -185,7 +185,7 @@ def _draw_obstacles_in_view(ax, result: SimResult, demos) -> None:
     grid = np.tile(result.placement.target, (x1.size * x2.size, 1))
     mesh1, mesh2 = np.meshgrid(x1, x2)
     grid[:, 0], grid[:, 1] = mesh1.ravel(), mesh2.ravel()
-    _draw_scene(ax, result.config.obstacles, x1, x2, grid)
+    draw_scene(ax, result.config.obstacles, x1, x2, grid)
 
 
 def _draw_error(
@@ -208,7 +208,7 @@ def _draw_error(
             )
     ax.set_xlabel("time (s)")
     ax.legend(frameon=False, fontsize="small")
-    _despine(ax)
+    despine(ax)
 
 
 def _headline(result: SimResult) -> str:

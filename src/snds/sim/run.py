@@ -34,14 +34,15 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from snds.arrival import PATH_TOLERANCE, distance_to_path, recovery_time
-from snds.obstacles import Scene, avoid_step, modulate_twist, step_fraction
+from snds.obstacles import Scene, modulate_twist, step_fraction
 from snds.phase import PhaseKeeper
 from snds.policy import Policy, float64_copy
-from snds.rollout import policy_guard, safe_velocity
+from snds.rollout import rollout, safe_velocity
 from snds.se3 import PosePolicy
 from snds.sim.arm import Arm, EndEffector, joint_velocity, orientation_error
 from snds.sim.robots import Robot, SimulationError, get_robot
 from snds.spaces import SE3, Euclidean, Phased, Space
+from snds.steppers import GuardedEuler
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -279,7 +280,6 @@ class PositionCommander:
         self.placement = placement
         self.goal_orientation = hold
         self.config = config
-        self.guard = policy_guard(policy) if policy.stable else None
 
     @classmethod
     def build(
@@ -315,19 +315,15 @@ class PositionCommander:
         state = torch.as_tensor(state)[None]
         scene = self.config.obstacles
         with torch.no_grad():
-            if scene is not None:
-                # Modulated around the obstacles, the step shortened to stay out of them (and
-                # to decrease V where no obstacle is in reach).
-                dt = 1.0 / self.config.control_rate
-                _, h, velocity = avoid_step(self.policy, scene, state, dt=dt, guard=self.guard)
-                velocity = velocity * (h / dt).unsqueeze(-1)
-            else:
-                velocity = safe_velocity(
-                    self.policy,
-                    state,
-                    1.0 / self.config.control_rate,
-                    max_speed=self.config.max_speed,
-                )[0]
+            # With obstacles, modulated around them, the step shortened to stay out of them
+            # (and to decrease V where no obstacle is in reach).
+            velocity = safe_velocity(
+                self.policy,
+                state,
+                1.0 / self.config.control_rate,
+                max_speed=self.config.max_speed,
+                scene=scene,
+            )[0]
         return velocity[0].numpy()
 
     def _world_twist(self, pose: EndEffector, velocity: np.ndarray) -> np.ndarray:
@@ -860,16 +856,13 @@ def unpushed_path(policy: Policy, start: np.ndarray, *, dt: float, steps: int) -
     it without a push: each step the velocity :func:`~snds.rollout.safe_velocity` gives for a
     period dt, at most ``steps`` steps, stopping within 1e-4 of the extent of the target."""
     space = policy.space
-    target = space.positions(policy.target)
+    target = torch.as_tensor(space.positions(policy.target))
     close = 1e-4 * float(policy.extents()[0])
+
+    def near(x: torch.Tensor) -> torch.Tensor:
+        position = x[:, : space.position_dim]
+        return ~torch.isfinite(position).all(dim=-1) | ((position - target).norm(dim=-1) <= close)
+
     x = torch.tensor(np.asarray(start, dtype=np.float64))[None]
-    states = [x[0].numpy().copy()]
-    step = torch.full((1,), dt, dtype=torch.float64)
-    for _ in range(steps):
-        velocity = safe_velocity(policy, x, dt)[0]
-        x = space.advance(x, step, velocity)
-        states.append(x[0].numpy().copy())
-        position = space.positions(states[-1])
-        if not np.isfinite(position).all() or np.linalg.norm(position - target) <= close:
-            break
-    return space.positions(np.array(states))
+    result = rollout(policy, x, dt=dt, steps=steps, stepper=GuardedEuler(), until=near)
+    return space.positions(result.states[:, 0].numpy())
