@@ -20,6 +20,8 @@ from snds.cli._common import (
     _summarise,
     _write_plots,
 )
+from snds.cli.refine import add_arguments as add_refine_arguments
+from snds.cli.refine import run_refinement
 from snds.evaluate import evaluate
 from snds.method import make_policy
 from snds.phase import Phase
@@ -144,6 +146,7 @@ def register(commands: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--checkpoint-every", type=int, default=200, help="steps between checkpoints"
     )
+    add_refine_arguments(parser)
     _check_arguments(parser)
     parser.add_argument(
         "--se3",
@@ -166,6 +169,9 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.init is not None:
+        # Looked up at the call, as below: a caller may wrap this module's evaluate.
+        return run_refinement(args, evaluate=lambda *a, **k: evaluate(*a, **k))
     check = _check_config(args)
     phase = Phase(codes=args.phase_codes) if args.phase_codes else None
     source = _data_source(args, poses=args.se3, seed=args.seed, phase=phase)

@@ -1,0 +1,206 @@
+"""Refinement benchmark: fit on 6 demonstrations, refine with the 7th, against a fit from
+scratch on all 7 (issue 43's bars).
+
+For every (motion, seed) of the paper's 8 LASA motions: a random 0.8 / 0.2 split of the 7
+demonstrations' samples; the default SNDS fitted on the first 6 (the trained model); a fit
+from scratch on all 7, timed side by side in the same process; then each schedule refines a
+copy of the trained model with the 7th demonstration (:func:`snds.refine.refine`) and is
+evaluated on all 7 (velocity MSE on the test samples, DTW, the library's default stability
+check) and on the 6 old ones (DTW before and after). One torch thread, runs one after the
+other (wall and CPU seconds both recorded, with the load average: the machine may be shared).
+
+    python benchmarks/refine.py                                  # 8 motions x 3 seeds
+    python benchmarks/refine.py --motions Sine --seeds 1 --schedule 100:5e-3:1 50:5e-3:1
+
+A schedule is ``steps:lr:new_weight`` (:class:`snds.refine.RefineConfig`); the default is the
+library's. Writes ``benchmarks/results/refine[-TAG].json`` and (without ``--no-readme``) the
+table between the ``refine`` markers of ``benchmarks/README.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import datetime
+import json
+import os
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from _readme import cpu_name, write_readme_section
+
+from snds.benchmark import MOTION_GROUPS
+from snds.data import Normalization, Split, load_lasa, split_samples
+from snds.evaluate import accuracy, evaluate
+from snds.policy import PolicyConfig, StablePolicy, float64_copy
+from snds.refine import RefineConfig, refine
+from snds.stability import CheckConfig
+from snds.train import TrainConfig, fit
+
+PAPER8 = MOTION_GROUPS["paper8"]
+HERE = Path(__file__).resolve().parent
+COMMAND = "python benchmarks/refine.py"
+
+
+def timed(work):
+    """``work()``, its wall and CPU seconds."""
+    wall, cpu = time.perf_counter(), time.process_time()
+    out = work()
+    return out, time.perf_counter() - wall, time.process_time() - cpu
+
+
+def fitted(demos, split, seed):
+    """The default SNDS (as benchmarks/core.py trains it) fitted on ``demos``; wall, CPU s."""
+    policy = StablePolicy(
+        dim=demos.dim, normalization=Normalization.fit(demos), config=PolicyConfig(), seed=seed
+    )
+    _, wall, cpu = timed(lambda: fit(policy, demos, split, TrainConfig(seed=seed), progress=False))
+    return policy, wall, cpu
+
+
+def scores(policy, demos, split, old, old_split, seed):
+    """Accuracy and stability on all demonstrations, DTW on the old ones (paper scale)."""
+    metrics = evaluate(policy, demos, split, check=CheckConfig(seed=seed))
+    stability = metrics["stability"]
+    return {
+        "dtw": metrics["dtw_paper"],
+        "mse": metrics["velocity_mse_paper"],
+        "converged": stability["converged_fraction"],
+        "violations": stability["decrease_violations"],
+        "old_dtw": accuracy(float64_copy(policy), old, old_split)["dtw_paper"],
+    }
+
+
+def run_one(motion: str, seed: int, schedules: list[RefineConfig]) -> list[dict]:
+    """One (motion, seed): the trained model, the fit from scratch, each schedule's
+    refinement; one row per schedule."""
+    demos = load_lasa(motion)
+    split = split_samples(demos, test_fraction=0.2, seed=seed)
+    old = demos.select(range(6))
+    old_split = Split(split.train[:6])
+    trained, base_wall, base_cpu = fitted(old, old_split, seed)
+    scratch, full_wall, full_cpu = fitted(demos, split, seed)
+    before = accuracy(float64_copy(trained), old, old_split)["dtw_paper"]
+    reference = scores(scratch, demos, split, old, old_split, seed)
+    rows = []
+    for schedule in schedules:
+        policy = copy.deepcopy(trained)
+        refined, wall, cpu = timed(
+            lambda policy=policy, schedule=schedule: refine(
+                policy, demos, split, config=schedule, train=TrainConfig(seed=seed), new=[6]
+            )
+        )
+        rows.append(
+            {
+                "motion": motion,
+                "seed": seed,
+                "schedule": schedule.to_dict(),
+                "refine_seconds": wall,
+                "refine_cpu_seconds": cpu,
+                "full_seconds": full_wall,
+                "full_cpu_seconds": full_cpu,
+                "base_seconds": base_wall,
+                "base_cpu_seconds": base_cpu,
+                "reach": refined.reach,
+                "old_dtw_before": before,
+                "scratch": reference,
+                **scores(policy, demos, split, old, old_split, seed),
+            }
+        )
+        print(json.dumps(rows[-1]), flush=True)
+    return rows
+
+
+def label(schedule: dict) -> str:
+    return f"{schedule['steps']} steps, lr {schedule['lr']:g}, new x{schedule['new_weight']}"
+
+
+def summarise(rows: list[dict]) -> str:
+    """One line per schedule: medians and the bars of issue 43."""
+    lines = [
+        "| schedule | refine s (CPU s), median | full fit s (CPU s), median | refine / full "
+        "| DTW / scratch (worst motion) | MSE / scratch (worst motion) | old DTW / before "
+        "(worst motion) | converged (min) | violations |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for key in dict.fromkeys(json.dumps(r["schedule"], sort_keys=True) for r in rows):
+        mine = [r for r in rows if json.dumps(r["schedule"], sort_keys=True) == key]
+        motions = list(dict.fromkeys(r["motion"] for r in mine))
+
+        def worst(metric: str, reference, mine=mine, motions=motions) -> str:
+            # Per motion, the mean over seeds of each side, then the worst motion's ratio.
+            ratios = {
+                m: np.mean([r[metric] for r in mine if r["motion"] == m])
+                / np.mean([reference(r) for r in mine if r["motion"] == m])
+                for m in motions
+            }
+            name = max(ratios, key=ratios.get)
+            return f"{ratios[name]:.2f} ({name})"
+
+        median = lambda k, mine=mine: float(np.median([r[k] for r in mine]))  # noqa: E731
+        ratio = np.median([r["refine_seconds"] / r["full_seconds"] for r in mine])
+        lines.append(
+            f"| {label(mine[0]['schedule'])} | {median('refine_seconds'):.2f} "
+            f"({median('refine_cpu_seconds'):.2f}) | {median('full_seconds'):.1f} "
+            f"({median('full_cpu_seconds'):.1f}) | {ratio:.1%} "
+            f"| {worst('dtw', lambda r: r['scratch']['dtw'])} "
+            f"| {worst('mse', lambda r: r['scratch']['mse'])} "
+            f"| {worst('old_dtw', lambda r: r['old_dtw_before'])} "
+            f"| {min(r['converged'] for r in mine):.3f} | {sum(r['violations'] for r in mine)} |"
+        )
+    return "\n".join(lines)
+
+
+def parse_schedule(text: str) -> RefineConfig:
+    steps, lr, weight = text.split(":")
+    return RefineConfig(steps=int(steps), lr=float(lr), new_weight=int(weight))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--motions", nargs="+", default=list(PAPER8))
+    parser.add_argument("--seeds", type=int, default=3)
+    parser.add_argument(
+        "--schedule", nargs="+", type=parse_schedule, default=[RefineConfig()], help="S:LR:W"
+    )
+    parser.add_argument("--tag", default="", help="suffix of the result file")
+    parser.add_argument("--no-readme", action="store_true")
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    load = os.getloadavg()
+    rows = [
+        row
+        for motion in args.motions
+        for seed in range(args.seeds)
+        for row in run_one(motion, seed, args.schedule)
+    ]
+    meta = {
+        "date": datetime.date.today().isoformat(),
+        "cpu": cpu_name(),
+        "machine": f"{platform.machine()}, {os.cpu_count()} cores, {platform.platform()}",
+        "threads": 1,
+        "load_average_before": load,
+        "load_average_after": os.getloadavg(),
+        "command": " ".join(["python", "benchmarks/refine.py", *os.sys.argv[1:]]),
+    }
+    name = "refine" + (f"-{args.tag}" if args.tag else "")
+    out = HERE / "results"
+    out.mkdir(exist_ok=True)
+    (out / f"{name}.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=2) + "\n")
+    table = summarise(rows)
+    print(table)
+    if not args.no_readme:
+        header = (
+            f"`{meta['command']}` ({len(rows)} rows; {meta['cpu']}, one torch thread, runs one "
+            f"after the other; load average {load[0]:.1f} before and "
+            f"{meta['load_average_after'][0]:.1f} after on {os.cpu_count()} cores: the machine "
+            "was shared, so wall times are high and the side-by-side ratio is the fairer figure)"
+        )
+        write_readme_section(name, header + "\n\n" + table)
+
+
+if __name__ == "__main__":
+    main()
