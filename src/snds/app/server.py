@@ -8,6 +8,10 @@ Routes (all JSON unless said; errors are ``{"error": "one line"}`` with a 4xx st
   "method": "snds" | "bc"?, "settings": {"steps", "seed", "rollouts", "samples"}?}``;
   starts ``snds train`` on them in a worker process (cancelling the job running) and answers
   202 with the job's status.
+* ``POST /api/jobs/{id}/refine``: the body of ``/api/train`` with the job's strokes and
+  target followed by new strokes; starts ``snds train --init`` on the job's model with the new
+  strokes (:mod:`snds.refine`: about a second) as a new job, answered as ``/api/train`` is.
+  409 if the strokes do not start with the job's own.
 * ``GET /api/jobs/{id}``: the status; with ``result`` (demonstrations, reproductions from
   their starts, target, time step) once the model is saved and ``metrics`` (``snds train``'s
   metrics.json: the stability check) once done. ``GET /api/jobs/{id}/events``: the same as a
@@ -56,6 +60,7 @@ from snds.app.strokes import (
     LIMITS,
     Limits,
     RequestError,
+    Strokes,
     csv_text,
     demonstrations_from_csv,
     parse_strokes,
@@ -105,6 +110,8 @@ SETTING_FLAGS = {
 MAX_NUMBER_CHARACTERS = 32
 #: The strokes' CSV in a job's model folder: the file ``snds train --data`` read.
 STROKES_FILE = "strokes.csv"
+#: The strokes a refinement adds, in its job's model folder (``snds train --init --data``).
+ADDED_FILE = "added.csv"
 
 
 # --- Requests and responses --------------------------------------------------------------------
@@ -536,6 +543,37 @@ def create_app(
         job = await run_in_threadpool(jobs_of(request).start, method, settings, argv, write_inputs)
         return _json(_report(job), status=202)
 
+    async def refine(request: Request) -> Response:
+        base = job_of(request, saved=True)
+        body = await _json_body(request, limits)
+        strokes = parse_strokes(body, limits)
+        trained = (base.model / STROKES_FILE).read_text()
+        count = len(base.extra["demos"])
+        kept = Strokes(strokes.positions[:count], strokes.times[:count], strokes.target)
+        if len(strokes.positions) <= count or csv_text(kept) != trained:
+            raise RequestError(
+                409,
+                f"job {base.id} was trained on other strokes: refining adds strokes after "
+                "its own, with its target; train again instead",
+            )
+        added = Strokes(strokes.positions[count:], strokes.times[count:], strokes.target)
+        settings = {k: v for k, v in base.settings.items() if k != "steps"}
+        argv = ["--quiet", "train", "--init", str(base.model), "--data", f"{{model}}/{ADDED_FILE}"]
+        argv += ["--out", "{model}"]
+        for name, value in settings.items():
+            argv += [SETTING_FLAGS[name], str(value)]
+
+        def write_inputs(model: Path) -> None:
+            write_csv(strokes, model / STROKES_FILE)
+            write_csv(added, model / ADDED_FILE)
+            demonstrations_from_csv(model / ADDED_FILE, shown_as="the added strokes")
+
+        job = await run_in_threadpool(
+            jobs_of(request).start, base.method, base.settings, argv, write_inputs
+        )
+        job.extra["refined_from"] = base.id
+        return _json(_report(job), status=202)
+
     async def status(request: Request) -> Response:
         return _json(_report(job_of(request)))
 
@@ -687,6 +725,7 @@ def create_app(
         Route("/api/health", health),
         Route("/api/limits", get_limits),
         Route("/api/train", train, methods=["POST"]),
+        Route(f"{job_path}/refine", refine, methods=["POST"]),
         Route(job_path, status),
         Route(job_path, cancel, methods=["DELETE"]),
         Route(f"{job_path}/events", events),
