@@ -25,6 +25,7 @@ import datetime
 import json
 import os
 import platform
+import sys
 import time
 from pathlib import Path
 
@@ -209,30 +210,35 @@ def main() -> None:
         return
     torch.set_num_threads(1)
     phase = Phase(codes=args.phase_codes) if args.phase_codes else None
-    load = os.getloadavg()
-    rows = [
-        row
-        for motion in args.motions
-        for seed in range(args.seeds)
-        for row in run_one(motion, seed, args.schedule, phase)
-    ]
     meta = {
         "date": datetime.date.today().isoformat(),
         "cpu": cpu_name(),
         "machine": f"{platform.machine()}, {os.cpu_count()} cores, {platform.platform()}",
         "threads": 1,
-        "load_average_before": load,
-        "load_average_after": os.getloadavg(),
-        "command": " ".join(["python", "benchmarks/refine.py", *os.sys.argv[1:]]),
+        "load_average_before": os.getloadavg(),
+        "command": " ".join(["python", "benchmarks/refine.py", *sys.argv[1:]]),
     }
-    finish(rows, meta, "refine" + (f"-{args.tag}" if args.tag else ""), readme=not args.no_readme)
+    name = "refine" + (f"-{args.tag}" if args.tag else "")
+    rows: list[dict] = []
+    # Seeds outermost: a sweep cut short has every motion at the seeds it finished.
+    for seed in range(args.seeds):
+        for motion in args.motions:
+            rows += run_one(motion, seed, args.schedule, phase)
+            meta["load_average_after"] = os.getloadavg()
+            save(rows, meta, name)
+    finish(rows, meta, name, readme=not args.no_readme)
+
+
+def save(rows: list[dict], meta: dict, name: str) -> None:
+    """Writes ``results/NAME.json`` (after every run: a sweep cut short keeps its rows)."""
+    out = HERE / "results"
+    out.mkdir(exist_ok=True)
+    (out / f"{name}.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=2) + "\n")
 
 
 def finish(rows: list[dict], meta: dict, name: str, *, readme: bool) -> None:
     """Writes ``results/NAME.json``, prints the table and puts it into the README."""
-    out = HERE / "results"
-    out.mkdir(exist_ok=True)
-    (out / f"{name}.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=2) + "\n")
+    save(rows, meta, name)
     table = summarise(rows)
     print(table)
     if readme:

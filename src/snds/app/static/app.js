@@ -214,7 +214,8 @@
         // The job's time is training, then the stability check (and saving): say which is which.
         const training = status.metrics && status.metrics.train_seconds;
         const split = training == null ? ` in ${status.seconds.toFixed(1)} s` : `: ${training.toFixed(1)} s training + ${(status.seconds - training).toFixed(1)} s check`;
-        jobProgress(job, 1, `${name}: done${split}`);
+        const short = training == null ? "" : `${training.toFixed(1)} s + ${(status.seconds - training).toFixed(1)} s check`;
+        jobProgress(job, 1, job.refines ? `${name}: ${short}` : `${name}: done${split}`);
         say(job.method === "bc"
           ? "BC trained: click to start it anywhere, and compare."
           : job.refines
@@ -729,6 +730,11 @@
       draw();
       return;
     }
+    addStroke(stroke);
+  }
+
+  // A finished stroke ([x, y, t] points): it refines the policy shown, if there is one.
+  function addStroke(stroke) {
     app.strokes.push(stroke);
     const shown = app.jobs.snds;
     if (shown && shown.layer && !app.refining) {
@@ -738,6 +744,7 @@
     say(`${app.strokes.length} stroke${app.strokes.length > 1 ? "s" : ""}. Draw more, or train.`);
     strokesChanged();
   }
+  app.addStroke = addStroke;
 
   // --- Refinement: a stroke added after training ------------------------------------------
 
