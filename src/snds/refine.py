@@ -296,12 +296,12 @@ def refine_model(
     """
     init, out = Path(init), Path(out)
     if out.resolve() == init.resolve():
-        raise ConfigError(f"--out {out}: the refined model needs a directory of its own")
+        raise ConfigError(f"{out}: the refined model needs a directory of its own, not {init}")
     policy, description = load_model(init)
-    if not isinstance(policy, StablePolicy):
+    if not isinstance(policy, StablePolicy) or policy.kind != StablePolicy.kind:
         raise ModelFileError(
-            f"{init}: a {policy.method} model; refinement continues the training of snds and "
-            "bc position models"
+            f"{init}: a {policy.method} model of {policy.space}; refinement continues the "
+            "training of snds and bc models of positions"
         )
     recorded = description.get("data") or {}
     if "motion" not in recorded and "file" not in recorded:
@@ -317,7 +317,10 @@ def refine_model(
     demos = added_demonstrations(old, new, phase=phase, max_end_spread=source.max_end_spread)
     split_record = dict(description.get("split") or {})
     split = _split(demos, split_record)
-    train = TrainConfig(**(description.get("train") or {}))
+    try:
+        train = TrainConfig(**(description.get("train") or {}))
+    except (TypeError, ConfigError) as error:
+        raise ModelFileError(f"{init}/model.json: unusable training settings ({error})") from None
     write_demonstrations(added_demonstrations(old, new), out / DEMONSTRATIONS)
     refinement = refine(
         policy,
