@@ -79,11 +79,7 @@ def measure(url: str, added: int) -> dict:
         )
         page.wait_for_function("sndsApp.strokes.length === 3")
         page.click("#train")
-        page.wait_for_function(
-            "sndsApp.jobs.snds && sndsApp.jobs.snds.status.state === 'done'",
-            timeout=1_800_000,
-            polling=100,
-        )
+        page.wait_for_function("sndsApp.drawn.snds", timeout=1_800_000, polling=100)
         train = page.evaluate("sndsApp.jobs.snds.status")
         rows = []
         for stroke in strokes(3, added):
@@ -96,43 +92,54 @@ def measure(url: str, added: int) -> dict:
                 polling=20,
             )
             timing = page.evaluate("sndsApp.timings.refine")
-            page.wait_for_function(
-                "sndsApp.jobs.snds.status.state === 'done'", timeout=600_000, polling=100
-            )
+            # The next stroke comes as soon as the field is shown (as a user's would), which
+            # stops this one's stability check; the last one's check is waited for.
             status = page.evaluate("sndsApp.jobs.snds.status")
-            stability = status["metrics"]["stability"]
             rows.append(
                 {
                     "strokes": page.evaluate("sndsApp.strokes.length"),
                     "state_after_stroke": state,
                     "stroke_to_field_seconds": (timing["drawn"] - timing["added"]) / 1e3,
-                    "refine_seconds": status["metrics"]["train_seconds"],
                     "saved_after_seconds": status["saved_after"],
                     "saved_cpu_seconds": status["saved_cpu_seconds"],
-                    "converged": stability["converged_fraction"],
-                    "violations": stability["decrease_violations"],
                 }
             )
             print(json.dumps(rows[-1]), flush=True)
+        page.wait_for_function(
+            "sndsApp.jobs.snds.status.state === 'done'", timeout=1_800_000, polling=100
+        )
+        metrics = page.evaluate("sndsApp.jobs.snds.status.metrics")
         browser.close()
-    return {"train": train, "refinements": rows}
+    stability = metrics["stability"]
+    last = {
+        "train_seconds": metrics["train_seconds"],
+        "converged": stability["converged_fraction"],
+        "violations": stability["decrease_violations"],
+        "rollouts": stability["rollouts"],
+    }
+    return {"train": train, "refinements": rows, "last": last}
 
 
 def table(record: dict) -> str:
     rows = record["refinements"]
     lines = [
-        "| strokes | stroke to refined field on screen, s | refinement (optimiser) s "
-        "| worker CPU s until saved | converged | violations |",
-        "|---|---|---|---|---|---|",
+        "| strokes | stroke to refined field on screen, s | refinement job until saved, s "
+        "| worker CPU s until saved |",
+        "|---|---|---|---|",
     ]
     for row in rows:
         lines.append(
             f"| 3 + {row['strokes'] - 3} | {row['stroke_to_field_seconds']:.2f} "
-            f"| {row['refine_seconds']:.2f} | {row['saved_cpu_seconds']:.2f} "
-            f"| {row['converged']:.3f} | {row['violations']} |"
+            f"| {row['saved_after_seconds']:.2f} | {row['saved_cpu_seconds']:.2f} |"
         )
     median = float(np.median([r["stroke_to_field_seconds"] for r in rows]))
-    lines.append(f"| median | {median:.2f} | | | | |")
+    last = record["last"]
+    lines.append(f"| median | {median:.2f} | | |")
+    lines.append(
+        f"\nThe last refinement's check: {last['converged']:.3f} of {last['rollouts']} random "
+        f"starts arrived, {last['violations']} decrease violations; its optimiser took "
+        f"{last['train_seconds']:.2f} s."
+    )
     return "\n".join(lines)
 
 
