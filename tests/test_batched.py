@@ -114,7 +114,7 @@ def test_a_diverging_fit_restarts_alone_as_it_would_separately(motions, monkeypa
     demos, splits = motions
     configs = [replace(WARPED, seed=seed, dtype="float64") for seed in range(3)]
     victims: set[int] = set()
-    real = train_module._draw_step
+    real = train_module.draw_step
     calls: dict[tuple[int, int], int] = {}
 
     def draw(policy, samples, config, generator, *step):
@@ -126,8 +126,8 @@ def test_a_diverging_fit_restarts_alone_as_it_would_separately(motions, monkeypa
             inputs = replace(inputs, positions=inputs.positions * float("nan"))
         return inputs
 
-    monkeypatch.setattr(train_module, "_draw_step", draw)
-    monkeypatch.setattr(batched, "_draw_step", draw)
+    monkeypatch.setattr(train_module, "draw_step", draw)
+    monkeypatch.setattr(batched, "draw_step", draw)
     alone = [make_policy(d, SMALL, seed=c.seed) for d, c in zip(demos, configs)]
     stacked = [make_policy(d, SMALL, seed=c.seed) for d, c in zip(demos, configs)]
     victims |= {id(alone[1]), id(stacked[1])}

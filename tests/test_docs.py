@@ -133,5 +133,5 @@ def test_readme_python_example_runs(monkeypatch):
     scope: dict = {}
     exec(compile(block, "README.md", "exec"), scope)
     # THEN it made what it says: a stable policy's metrics, and velocities in user units
-    assert scope["metrics"]["stability"]["samples_checked"] == 100
+    assert scope["metrics"].stability.samples_checked == 100
     assert scope["velocities"].shape == scope["demos"][0].states.shape

@@ -3,8 +3,9 @@ import pytest
 import torch
 
 from snds.data import Demonstration, Demonstrations, split_samples
-from snds.evaluate import accuracy, path_reference, reproduce
+from snds.evaluate import accuracy, evaluate, path_reference, reproduce
 from snds.policy import float64_copy
+from snds.stability import CheckConfig
 
 from conftest import linear_policy, make_policy
 
@@ -161,3 +162,24 @@ def test_accuracy_reuses_the_retrace_rollouts_as_its_own(spiral):
     given = accuracy(policy, spiral, split, paths=prefixes)
     own = accuracy(policy, spiral, split)
     assert given["dtw"] == pytest.approx(own["dtw"], rel=1e-6)
+
+
+def test_an_evaluation_is_typed_and_writes_the_records_keys(spiral):
+    # GIVEN the exact policy pi(x) = -x evaluated with a small check
+    policy = linear_policy(1.0)
+    split = split_samples(spiral, test_fraction=0.2, seed=0)
+    check = CheckConfig(rollouts=3, samples=50)
+    evaluation = evaluate(policy, spiral, split, check=check, threads=1)
+    record = evaluation.to_dict()
+    # THEN the record is metrics.json's: accuracy, retrace, stability, warnings, in that order
+    assert list(record) == [*evaluation.accuracy, *evaluation.retrace, "stability", "warnings"]
+    assert record["stability"] == evaluation.stability.to_dict()
+    assert record["warnings"] == list(evaluation.warnings)
+    assert evaluation.stability.rollouts == 3 and evaluation.stability.samples_checked == 50
+    # typed figures, and the old dict-style reads give the same numbers
+    assert evaluation.dtw_paper == record["dtw_paper"] == evaluation["dtw_paper"]
+    assert evaluation.velocity_mse_paper == record["velocity_mse_paper"]
+    assert {**evaluation}.keys() == record.keys() and "stability" in evaluation
+    # a run adds the fit's time, and nothing else changes
+    timed = evaluation.with_train_seconds(2.5).to_dict()
+    assert timed == {**record, "train_seconds": 2.5}

@@ -18,13 +18,7 @@ PACKAGE = SRC / "snds"
 OPTIONAL = ("snds.sim", "snds.export", "snds.app")
 
 #: Function-level imports that are the design: (importing module, imported module) and why.
-DELIBERATE: dict[tuple[str, str], str] = {
-    # The page's worker process redirects its standard output before the library prints.
-    ("snds.app.worker", "snds.cli"): "the worker imports the library after the redirect",
-    ("snds.app.worker", "snds.cli.train"): "the worker imports the library after the redirect",
-    ("snds.app.worker", "snds.train"): "the worker imports the library after the redirect",
-    ("snds.app.worker", "snds.errors"): "the worker imports the library after the redirect",
-}
+DELIBERATE: dict[tuple[str, str], str] = {}
 
 
 @dataclass(frozen=True)

@@ -227,7 +227,7 @@ def trained(phased):
 
 def test_a_trained_phased_policy_converges_and_is_measured_on_positions(trained, phased):
     check = CheckConfig(rollouts=100, samples=5000, seed=0)
-    metrics = evaluate(trained.double(), phased, no_split(phased), check=check)
+    metrics = evaluate(trained.double(), phased, no_split(phased), check=check).to_dict()
     assert metrics["stability"]["converged_fraction"] == 1.0
     assert metrics["stability"]["decrease_violations"] == 0
     assert np.isfinite(metrics["dtw"]) and "phase_rate_mse" in metrics

@@ -19,13 +19,8 @@ from snds.errors import ConfigError, DataError
 from snds.models import load_model
 from snds.phase import Phase
 from snds.policy import float64_copy
-from snds.refine import (
-    RefineConfig,
-    added_demonstrations,
-    refine,
-    refine_settings,
-    write_demonstrations,
-)
+from snds.refine import RefineConfig, added_demonstrations, refine, refine_settings
+from snds.refine_run import write_demonstrations
 from snds.stability import CheckConfig, check_stability
 from snds.train import CHECKPOINT, TrainConfig, fit
 

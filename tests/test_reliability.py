@@ -191,7 +191,7 @@ def interrupted_fit(policy, demos, split, config, checkpoint, monkeypatch, after
     """Runs ``fit`` until ``after`` losses were computed, then stops it dead."""
     from snds import train
 
-    original, calls = train._loss, []
+    original, calls = train.step_loss, []
 
     def loss(*args):
         calls.append(1)
@@ -200,7 +200,7 @@ def interrupted_fit(policy, demos, split, config, checkpoint, monkeypatch, after
         return original(*args)
 
     with monkeypatch.context() as patch:
-        patch.setattr(train, "_loss", loss)
+        patch.setattr(train, "step_loss", loss)
         with pytest.raises(Killed):
             fit(
                 policy,

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 import torch
 
+import snds.batches as batches
 import snds.losses as losses_module
 import snds.train as train_module
 from snds.data import Demonstration, Demonstrations, no_split, split_samples
@@ -42,7 +43,7 @@ def test_same_seed_same_result(spiral):
 
 
 def test_recovers_from_a_nan_loss_without_a_rerun(spiral, monkeypatch):
-    real_loss = train_module._loss
+    real_loss = train_module.step_loss
     calls = {"n": 0}
 
     def flaky(*args):
@@ -50,7 +51,7 @@ def test_recovers_from_a_nan_loss_without_a_rerun(spiral, monkeypatch):
         loss = real_loss(*args)
         return loss * float("nan") if calls["n"] == 10 else loss
 
-    monkeypatch.setattr(train_module, "_loss", flaky)
+    monkeypatch.setattr(train_module, "step_loss", flaky)
     policy = make_policy(spiral, dtype=torch.float32)
     result = fit(
         policy, spiral, no_split(spiral), dataclasses.replace(FAST, steps=50), progress=False
@@ -62,7 +63,7 @@ def test_recovers_from_a_nan_loss_without_a_rerun(spiral, monkeypatch):
 
 def test_gives_up_with_a_clear_error_after_repeated_divergence(spiral, monkeypatch):
     monkeypatch.setattr(
-        train_module, "_loss", lambda *args: torch.tensor(float("nan"), requires_grad=True)
+        train_module, "step_loss", lambda *args: torch.tensor(float("nan"), requires_grad=True)
     )
     policy = make_policy(spiral, dtype=torch.float32)
     with pytest.raises(TrainingError, match="diverged"):
@@ -100,12 +101,12 @@ class _QuadraticV(torch.nn.Module):
 def test_shape_penalty_is_zero_for_round_v_and_blind_to_its_scale():
     with torch.no_grad():
         generator = torch.Generator().manual_seed(0)
-        round_v = train_module.shape_penalty(_QuadraticV(3.0 * np.eye(2)), 2, generator)
+        round_v = losses_module.shape_penalty(_QuadraticV(3.0 * np.eye(2)), 2, generator)
         assert float(round_v) < 1e-24
         state = generator.get_state()
-        skewed = train_module.shape_penalty(_QuadraticV(np.diag([1.0, 10.0])), 2, generator)
+        skewed = losses_module.shape_penalty(_QuadraticV(np.diag([1.0, 10.0])), 2, generator)
         generator.set_state(state)
-        scaled = train_module.shape_penalty(_QuadraticV(np.diag([7.0, 70.0])), 2, generator)
+        scaled = losses_module.shape_penalty(_QuadraticV(np.diag([7.0, 70.0])), 2, generator)
         assert float(skewed) > 0.1
         # The projection does not change when V is scaled, and neither does the penalty.
         assert float(scaled) == pytest.approx(float(skewed), rel=1e-9)
@@ -121,7 +122,7 @@ def test_shape_weight_rounds_v_and_keeps_the_fit(spiral):
         assert accuracy(policy.double(), spiral, split)["velocity_mse_paper"] < 5e-3
         generator = torch.Generator().manual_seed(1)
         with torch.no_grad():
-            penalty = train_module.shape_penalty(policy.double(), 2, generator)
+            penalty = losses_module.shape_penalty(policy.double(), 2, generator)
         penalties[weight] = float(penalty)
     assert penalties[1.0] < 0.5 * penalties[0.0]
 
@@ -148,7 +149,9 @@ def _nominal_gradient(policy, samples, weight: float) -> tuple[torch.Tensor, tor
         noise_correction=0.0,
         dtype="float64",
     )
-    loss = train_module._loss(policy, samples, config, torch.Generator().manual_seed(0))
+    loss = losses_module.step_loss(
+        policy, config, batches.draw_step(policy, samples, config, torch.Generator().manual_seed(0))
+    )
     loss.backward()
     handle.remove()
     # The nominal field is out[:-1] - out[-1] (the last row is the target), so d loss / d f
@@ -198,7 +201,11 @@ def test_position_noise_perturbs_the_states_only(spiral):
         config = TrainConfig(
             batch_size=0, position_noise=noise, noise_correction=0.0, dtype="float64"
         )
-        train_module._loss(policy, samples, config, torch.Generator().manual_seed(0))
+        losses_module.step_loss(
+            policy,
+            config,
+            batches.draw_step(policy, samples, config, torch.Generator().manual_seed(0)),
+        )
     handle.remove()
     assert torch.equal(seen[0], samples.positions)
     offsets = seen[1] - samples.positions
@@ -229,12 +236,12 @@ def test_warp_penalty_is_the_jacobians_distance_from_the_identity(spiral):
     warp = policy.lyapunov.warp
     generator = torch.Generator().manual_seed(0)
     # The warp starts as the identity: no penalty.
-    assert train_module.warp_penalty(warp, 2, generator).item() == 0.0
+    assert losses_module.warp_penalty(warp, 2, generator).item() == 0.0
     with torch.no_grad():
         for p in warp.parameters():
             p.add_(torch.randn_like(p))
     # THEN with its own states and probes it is mean |(J - I) u|^2, J from autograd ...
-    penalty = train_module.warp_penalty(warp, 2, torch.Generator().manual_seed(1))
+    penalty = losses_module.warp_penalty(warp, 2, torch.Generator().manual_seed(1))
     replay = torch.Generator().manual_seed(1)
     x = torch.rand(256, 2, generator=replay).double() * 4 - 2
     u = torch.randn(256, 2, generator=replay).double()
@@ -244,7 +251,7 @@ def test_warp_penalty_is_the_jacobians_distance_from_the_identity(spiral):
     torch.testing.assert_close(penalty, expected, rtol=1e-10, atol=0.0)
     # ... an unbiased estimate of E |J - I|_F^2 (mean of 200 draws within 5 standard errors)
     draws = torch.stack(
-        [train_module.warp_penalty(warp, 2, torch.Generator().manual_seed(k)) for k in range(200)]
+        [losses_module.warp_penalty(warp, 2, torch.Generator().manual_seed(k)) for k in range(200)]
     ).detach()
     x = torch.rand(100_000, 2, generator=torch.Generator().manual_seed(7)).double() * 4 - 2
     _, caches = warp.forward_with_caches(x)
@@ -273,7 +280,11 @@ def test_penalties_come_every_kth_step_with_k_times_their_weight(spiral):
         weights = {"warp_weight": 0.5, "shape_weight": 0.2} | settings
         train = TrainConfig(position_noise=0.0, noise_correction=0.0, dtype="float64", **weights)
         generator = torch.Generator().manual_seed(3)
-        return float(train_module._loss(policy, samples, train, generator, step).detach())
+        return float(
+            losses_module.step_loss(
+                policy, train, batches.draw_step(policy, samples, train, generator, step)
+            ).detach()
+        )
 
     bare = loss(0, warp_weight=0.0, shape_weight=0.0)
     once = loss(0, penalty_every=1)
@@ -328,7 +339,7 @@ def test_warm_up_is_long_enough_for_short_fits(steps):
 def test_the_part_of_an_offset_across_the_direction_of_travel():
     offsets = torch.tensor([[1.0, 1.0], [3.0, -2.0], [0.5, 0.25]], dtype=torch.float64)
     velocities = torch.tensor([[2.0, 0.0], [0.0, -5.0], [0.0, 0.0]], dtype=torch.float64)
-    across = train_module._across(offsets, velocities)
+    across = batches.across(offsets, velocities)
     # Along x, along y, and all of the offset where the velocity is 0 (no direction).
     expected = torch.tensor([[0.0, 1.0], [3.0, 0.0], [0.5, 0.25]], dtype=torch.float64)
     torch.testing.assert_close(across, expected)
@@ -349,7 +360,7 @@ def test_corrective_noise_trains_moved_states_towards_the_nearest_sample(spiral)
         correction_width=0.0,
         seed=0,
     )
-    draw = train_module._draw_step(policy, samples, config, torch.Generator().manual_seed(3))
+    draw = batches.draw_step(policy, samples, config, torch.Generator().manual_seed(3))
     # THEN about that share of the states moved, by about that noise; the rest are as
     # demonstrated, with their demonstrated velocities
     moved = (draw.positions != samples.positions).any(-1)
@@ -390,7 +401,7 @@ def test_corrective_noise_searches_a_bounded_set_of_samples(spiral, monkeypatch)
         correction_share=1.0,
         correction_width=0.0,
     )
-    draw = train_module._draw_step(policy, samples, config, torch.Generator().manual_seed(3))
+    draw = batches.draw_step(policy, samples, config, torch.Generator().manual_seed(3))
     # THEN every target is the velocity of one of the evenly spaced references, corrected
     stride = -(-len(samples.positions) // 100)
     references = samples.positions[::stride]
@@ -398,7 +409,7 @@ def test_corrective_noise_searches_a_bounded_set_of_samples(spiral, monkeypatch)
     nearest = _brute_force_nearest(draw.positions, references) * stride
     velocity = samples.velocities[nearest]
     offset = draw.positions - samples.positions[nearest]
-    expected = velocity - config.noise_correction * train_module._across(offset, velocity)
+    expected = velocity - config.noise_correction * batches.across(offset, velocity)
     torch.testing.assert_close(draw.velocities, expected)
 
 
@@ -409,7 +420,7 @@ def test_no_correction_leaves_the_batch_and_the_random_stream_alone(spiral):
     off = TrainConfig(batch_size=64, noise_correction=0.0)
     generator = torch.Generator().manual_seed(3)
     # (a step without the penalties, whose random states come after)
-    draw = train_module._draw_step(policy, samples, off, generator, step=1)
+    draw = batches.draw_step(policy, samples, off, generator, step=1)
     after = torch.rand(1, generator=generator)
     # The same draws as position noise alone: a batch index, then its noise.
     generator = torch.Generator().manual_seed(3)
@@ -434,7 +445,7 @@ def test_a_correction_width_pulls_towards_the_weighted_paths(spiral):
     config = TrainConfig(
         batch_size=0, position_noise=0.0, correction_share=1.0, correction_width=0.05
     )
-    draw = train_module._draw_step(policy, samples, config, torch.Generator().manual_seed(3))
+    draw = batches.draw_step(policy, samples, config, torch.Generator().manual_seed(3))
     # THEN each target is the nearest sample's velocity minus k times the averaged pull
     nearest = samples.nearest(draw.positions)
     velocity = samples.velocities[nearest]

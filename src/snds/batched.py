@@ -3,14 +3,16 @@ r"""Many fits at once: K policies of one architecture trained as one stacked mod
 :func:`fit_many` gives what K calls of :func:`snds.train.fit` give (several seeds of one
 motion, or several motions of one dimension), with one forward and one backward pass per step
 for all K: each policy's parameters and buffers are stacked along a new leading axis and the
-loss :func:`snds.train._step_loss` runs under :func:`torch.func.vmap`. Only the networks are
+loss :func:`snds.losses.step_loss` runs under :func:`torch.func.vmap`. Only the networks are
 shared work; everything that makes a fit what it is stays per fit:
 
 * its random inputs (mini-batches, position noise, the penalties' states), drawn by
-  :func:`snds.train._draw_step` from its own generator seeded as :func:`~snds.train.fit`
+  :func:`snds.batches.draw_step` from its own generator seeded as :func:`~snds.train.fit`
   seeds it, in the same order, outside vmap;
 * its Adam (the policy's own, stepped on the policy's own parameters), gradient clipping by
-  its own norm, learning-rate schedule, restarts after a diverged step and early stop.
+  its own norm, learning-rate schedule, restarts after a diverged step and early stop: the
+  loop is :func:`snds.train.train_loop`, the one :func:`~snds.train.fit` runs, with the
+  stacked losses of this module in place of one policy's.
 
 So a fit's weights and loss history equal a separate fit's up to the rounding of batched
 against single matrix products, an ulp here and there, which training then amplifies as it
@@ -23,56 +25,24 @@ fits are alike in distribution (the same data, noise and schedule), not in their
 from __future__ import annotations
 
 import copy
-import sys
-import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import fields, replace
 
 import torch
 from torch import Tensor, nn
 from torch.func import functional_call, vmap
-from tqdm.auto import tqdm
 
+from snds.batches import StepInputs, draw_step
+from snds.callbacks import Callback, ProgressBar
 from snds.data.demonstrations import Demonstrations, Split
 from snds.errors import ConfigError
-from snds.losses import Samples
+from snds.losses import step_loss
+from snds.parallel import torch_threads
 from snds.policy import Policy
-from snds.train import (
-    DTYPES,
-    TrainConfig,
-    TrainingError,
-    TrainResult,
-    _adam,
-    _diverged,
-    _draw_step,
-    _restart,
-    _State,
-    _step,
-    _step_loss,
-    _StepInputs,
-    clip_gradients,
-    training_samples,
-)
+from snds.threads import fastest_threads
+from snds.train import Fit, TrainConfig, TrainResult, prepare_fit, train_loop
 
-__all__ = ["fit_many"]
-
-
-@dataclass(eq=False)
-class _Fit:
-    """One fit of a batch: what :func:`snds.train.fit` keeps in its locals."""
-
-    index: int
-    policy: Policy
-    config: TrainConfig
-    samples: Samples
-    generator: torch.Generator
-    optimizer: torch.optim.Adam
-    state: _State
-    parameters: list[torch.Tensor] = field(init=False)
-
-    def __post_init__(self) -> None:
-        # The same tensors for the whole fit: a restart reloads the state dict in place.
-        self.parameters = list(self.policy.parameters())
+__all__ = ["StackedLosses", "fit_many"]
 
 
 def fit_many(
@@ -81,7 +51,9 @@ def fit_many(
     splits: Sequence[Split],
     configs: Sequence[TrainConfig],
     *,
+    callbacks: Sequence[Callback] = (),
     progress: bool = True,
+    threads: int | None = None,
 ) -> list[TrainResult]:
     """Fits K policies (in place) as one stacked model; the same as K calls of
     :func:`snds.train.fit`, up to rounding.
@@ -93,15 +65,18 @@ def fit_many(
     one group after the other.
 
     A fit that diverges restarts from its last good state exactly as in :func:`fit`, while
-    the others go on; one that stops early (``patience``) leaves the stack. Checkpoints are
-    not written: a killed batch starts again.
+    the others go on; one that stops early (``patience``, or a callback) leaves the stack.
+    Checkpoints are not written: a killed batch starts again.
 
     Arguments:
         policies: K policies to train; each is moved to its config's dtype and device.
         demos: The demonstrations of each fit, in user units.
         splits: Which samples of each fit train.
         configs: The optimisation settings of each fit, equal but for ``seed``.
+        callbacks: Hooks (:class:`snds.callbacks.Callback`); each event's ``fit`` is the
+            fit's position in ``policies``.
         progress: Show a progress bar (only on a terminal).
+        threads: Torch CPU threads, restored after (None: :func:`snds.threads.fastest_threads`).
 
     Returns:
         One result per fit, in order. ``seconds`` is the wall time of the fit's group up to
@@ -119,21 +94,19 @@ def fit_many(
             f"{len(configs)} configs"
         )
     _check_stackable(policies, configs)
-    fits = []
-    for index, (policy, demo, split, config) in enumerate(zip(policies, demos, splits, configs)):
-        # As fit sets itself up, so that each fit starts from what a separate one would.
-        dtype = DTYPES[config.dtype]
-        policy.to(device=config.device, dtype=dtype)
-        samples = training_samples(demo, policy, split, config)
-        policy.set_anchors(samples.positions)
-        generator = torch.Generator().manual_seed(config.seed)
-        state = _State(good=copy.deepcopy(policy.state_dict()))
-        fits.append(_Fit(index, policy, config, samples, generator, _adam(policy, config), state))
-    groups: dict[tuple, list[_Fit]] = {}
+    fits = [
+        prepare_fit(
+            policy, demo, split, config, index=index, label=f"fit {index} (seed {config.seed})"
+        )
+        for index, (policy, demo, split, config) in enumerate(zip(policies, demos, splits, configs))
+    ]
+    groups: dict[tuple, list[Fit]] = {}
     for one in fits:
         groups.setdefault(_signature(one), []).append(one)
-    for group in groups.values():
-        _fit_group(group, progress=progress)
+    with torch_threads(fastest_threads(configs[0]) if threads is None else threads):
+        for group in groups.values():
+            shown = [ProgressBar(configs[0].steps, desc=f"train x{len(group)}")] if progress else []
+            train_loop(group, StackedLosses(group), callbacks=[*shown, *callbacks])
     return [one.state.result for one in fits]
 
 
@@ -157,11 +130,11 @@ def _check_stackable(policies: Sequence[Policy], configs: Sequence[TrainConfig])
         )
 
 
-def _signature(one: _Fit) -> tuple:
+def _signature(one: Fit) -> tuple:
     """The shapes of the tensors a fit's steps draw, from a copy of its generator."""
     probe = torch.Generator().manual_seed(0)
     probe.set_state(one.generator.get_state())
-    inputs = _draw_step(one.policy, one.samples, one.config, probe, 0)
+    inputs = draw_step(one.policy, one.samples, one.config, probe, 0)
     return tuple(None if v is None else _shapes(v) for v in _fields(inputs).values())
 
 
@@ -169,12 +142,12 @@ def _shapes(value: Tensor | tuple[Tensor, ...]) -> tuple:
     return tuple(t.shape for t in value) if isinstance(value, tuple) else tuple(value.shape)
 
 
-def _fields(inputs: _StepInputs) -> dict[str, Tensor | tuple[Tensor, ...] | None]:
+def _fields(inputs: StepInputs) -> dict[str, Tensor | tuple[Tensor, ...] | None]:
     # A dict, not dataclasses.asdict (which deep-copies tensors), for vmap's pytrees.
     return {f.name: getattr(inputs, f.name) for f in fields(inputs)}
 
 
-def _stack(draws: list[_StepInputs]) -> dict[str, Tensor | tuple[Tensor, ...]]:
+def _stack(draws: list[StepInputs]) -> dict[str, Tensor | tuple[Tensor, ...]]:
     """The K fits' step inputs as one dict of tensors with a leading axis of K; the terms
     that are off (None) are left out, since vmap maps tensors only."""
     stacked: dict[str, Tensor | tuple[Tensor, ...]] = {}
@@ -198,83 +171,38 @@ class _Loss(nn.Module):
         self.config = config
 
     def forward(self, inputs: dict) -> Tensor:
-        return _step_loss(self.policy, self.config, _StepInputs(**inputs))
+        return step_loss(self.policy, self.config, StepInputs(**inputs))
 
 
-def _stacked(fits: list[_Fit], which: str) -> dict[str, Tensor]:
+def _stacked(fits: list[Fit], which: str) -> dict[str, Tensor]:
     """Each named parameter or buffer of the fits' policies stacked, (K, *shape)."""
     named = [dict(getattr(one.policy, f"named_{which}")()) for one in fits]
     return {f"policy.{name}": torch.stack([n[name] for n in named]) for name in named[0]}
 
 
-def _fit_group(fits: list[_Fit], *, progress: bool) -> None:
-    """Trains fits whose steps draw tensors of the same shapes as one stacked model."""
-    config = fits[0].config
-    # The shapes and code of the loss, without weights of its own: functional_call gives it
-    # the stacked ones, and a meta copy cannot be used by mistake.
-    template = _Loss(copy.deepcopy(fits[0].policy).to("meta"), config)
+class StackedLosses:
+    """The losses of a group's active fits (:data:`snds.train.Losses`) from one stacked model:
+    their parameters and buffers stacked along a new leading axis, and the loss of one fit
+    run under :func:`torch.func.vmap`.
 
-    def loss(tensors: dict[str, Tensor], inputs: dict) -> Tensor:
-        return functional_call(template, tensors, (inputs,), strict=True)
+    Arguments:
+        fits: The group; every fit's policy has one architecture.
+    """
 
-    losses_of = vmap(loss)
-    show = progress and sys.stderr.isatty()
-    start = time.perf_counter()
-    active, buffers = list(fits), _stacked(fits, "buffers")
-    bar = tqdm(range(config.steps), disable=not show, desc=f"train x{len(fits)}", leave=False)
-    for step in bar:
-        inputs = []
-        for one in active:
-            one.state.step = step
-            inputs.append(_draw_step(one.policy, one.samples, one.config, one.generator, step))
-        losses = losses_of(_stacked(active, "parameters") | buffers, _stack(inputs))
-        values = losses.detach().tolist()
-        diverged = [_diverged(value, one.state) for value, one in zip(values, active)]
-        healthy = [i for i, bad in enumerate(diverged) if not bad]
-        for i in healthy:
-            active[i].optimizer.zero_grad(set_to_none=True)
-        if healthy:
-            # The fits share no weights, so the sum's gradient is each fit's own; a diverged
-            # fit is left out, as fit skips its backward pass.
-            (losses if len(healthy) == len(active) else losses[healthy]).sum().backward()
-        for i in healthy:
-            norm = clip_gradients(active[i].parameters, config.grad_clip)
-            # As in fit: a NaN gradient is a diverged step too.
-            diverged[i] = not bool(torch.isfinite(norm))
-        stopped = []
-        for value, bad, one in zip(values, diverged, active):
-            if bad:
-                try:
-                    one.optimizer = _restart(one.policy, one.state, config, value)
-                except TrainingError as error:
-                    message = f"fit {one.index} (seed {one.config.seed}): {error}"
-                    raise TrainingError(message) from error
-                continue
-            _step(one.policy, one.optimizer, one.state, config, value)
-            if config.patience and one.state.since_best >= config.patience:
-                stopped.append(one)
-                _finish(one, "plateau", start)
-        if config.max_seconds is not None and time.perf_counter() - start > config.max_seconds:
-            for one in active:
-                if one not in stopped:
-                    _finish(one, "time", start)
-            break
-        if stopped:
-            active = [one for one in active if one not in stopped]
-            if not active:
-                break
-            buffers = _stacked(active, "buffers")
-        if step % 20 == 0:
-            bar.set_postfix(loss=f"{min(one.state.smoothed for one in active):.2e}")
-    bar.close()
-    for one in fits:
-        if not one.state.finished:
-            _finish(one, "steps", start)
+    def __init__(self, fits: list[Fit]) -> None:
+        # The shapes and code of the loss, without weights of its own: functional_call gives
+        # it the stacked ones, and a meta copy cannot be used by mistake.
+        template = _Loss(copy.deepcopy(fits[0].policy).to("meta"), fits[0].config)
 
+        def loss(tensors: dict[str, Tensor], inputs: dict) -> Tensor:
+            return functional_call(template, tensors, (inputs,), strict=True)
 
-def _finish(one: _Fit, why: str, start: float) -> None:
-    result = one.state.result
-    result.stopped = why
-    result.seconds = time.perf_counter() - start
-    result.steps = len(result.history)
-    one.state.finished = True
+        self.losses_of = vmap(loss)
+        self.active: list[int] = []
+        self.buffers: dict[str, Tensor] = {}
+
+    def __call__(self, active: list[Fit], inputs: list[StepInputs]) -> Tensor:
+        ids = [id(one) for one in active]
+        if ids != self.active:  # a fit stopped early: the stack shrinks
+            self.active, self.buffers = ids, _stacked(active, "buffers")
+        return self.losses_of(_stacked(active, "parameters") | self.buffers, _stack(inputs))

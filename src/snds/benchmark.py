@@ -433,7 +433,8 @@ def run_batch(tasks: Sequence[Task], settings: SweepSettings) -> list[TaskOutput
                     check=CheckConfig(
                         seed=task.seed, rollouts=settings.rollouts, samples=settings.samples
                     ),
-                )
+                    threads=1,
+                ).to_dict()
                 for task, fitted, (demos, split) in zip(tasks, fits, data)
             ]
     return [

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -11,15 +13,18 @@ from dtaidistance import dtw_ndim
 from snds.arrival import ARRIVAL_TOLERANCE
 from snds.data.demonstrations import Split
 from snds.metrics import dtw, final_distance, frechet, swept_error_area, velocity_mse
+from snds.parallel import torch_threads
 from snds.policy import Policy, float64_copy
 from snds.spaces import Phased, Space
-from snds.stability import CheckConfig, check_stability
+from snds.stability import CheckConfig, StabilityReport, check_stability
+from snds.threads import fastest_threads
 
 __all__ = [
     "MAX_PATH_SAMPLES",
     "RETRACE_DURATIONS",
     "RETRACE_SAMPLES",
     "RETRACE_WARNING",
+    "Evaluation",
     "accuracy",
     "evaluate",
     "evaluation_demos",
@@ -289,22 +294,91 @@ def warnings(record: dict, *, hint: bool = True) -> list[str]:
     return said
 
 
+@dataclass(frozen=True)
+class Evaluation:
+    """What :func:`evaluate` found: accuracy, retracing and the stability report.
+
+    Attributes:
+        accuracy: :func:`accuracy`'s record (velocity MSE, DTW, Frechet, ..., user units and
+            the paper's scale).
+        retrace: :func:`retrace`'s record (rollouts from every demonstration's start).
+        stability: The stability check's report (:func:`snds.stability.check_stability`).
+        warnings: What a user must know before trusting the model (:func:`warnings`).
+        train_seconds: The fit's wall time, when the evaluation belongs to a training run.
+    """
+
+    accuracy: Mapping[str, Any]
+    retrace: Mapping[str, float]
+    stability: StabilityReport
+    warnings: tuple[str, ...] = ()
+    train_seconds: float | None = None
+
+    @property
+    def velocity_mse_paper(self) -> float:
+        """Velocity MSE on the test samples, in the paper's scale."""
+        return float(self.accuracy["velocity_mse_paper"])
+
+    @property
+    def dtw_paper(self) -> float:
+        """Mean DTW distance of the reproductions, in the paper's scale."""
+        return float(self.accuracy["dtw_paper"])
+
+    def with_train_seconds(self, seconds: float) -> Evaluation:
+        """The same evaluation, with the wall time of the fit it evaluates."""
+        return replace(self, train_seconds=seconds)
+
+    # Read-only access by key to the metrics.json record, for code written when evaluate
+    # returned that dict (``metrics["stability"]["converged_fraction"]``, ``{**metrics}``).
+    def __getitem__(self, key: str) -> Any:
+        return self.to_dict()[key]
+
+    def __contains__(self, key: object) -> bool:
+        return key in self.to_dict()
+
+    def keys(self) -> Any:
+        """The keys of :meth:`to_dict`."""
+        return self.to_dict().keys()
+
+    def get(self, key: str, default: Any = None) -> Any:
+        """``to_dict().get(key, default)``."""
+        return self.to_dict().get(key, default)
+
+    def to_dict(self) -> dict:
+        """The JSON-ready record ``metrics.json`` holds: the accuracy and retrace figures,
+        ``stability``, ``warnings`` and, in a training run, ``train_seconds``."""
+        record = {**self.accuracy, **self.retrace, "stability": self.stability.to_dict()}
+        record["warnings"] = list(self.warnings)
+        if self.train_seconds is not None:
+            record["train_seconds"] = self.train_seconds
+        return record
+
+
 def evaluate(
-    policy: Policy, demos: Any, split: Split, *, check: CheckConfig = CheckConfig()
-) -> dict:
-    """Accuracy and the stability report, as one JSON-ready record.
+    policy: Policy,
+    demos: Any,
+    split: Split,
+    *,
+    check: CheckConfig = CheckConfig(),
+    threads: int | None = None,
+) -> Evaluation:
+    """Accuracy, retracing and the stability report of a policy on its demonstrations.
 
     Arguments:
         policy: The policy (not modified; evaluated in float64).
         demos: All demonstrations of the task, in the policy's space.
         split: The train / test split.
         check: The stability check's settings (its seed, sizes, grid starts).
+        threads: Torch CPU threads during the evaluation, restored after it (None:
+            :func:`snds.threads.fastest_threads` for the check's size).
     """
-    policy64 = float64_copy(policy)
-    retraced, paths = retrace(policy64, demos)
-    record = accuracy(policy64, demos, split, paths=paths)
-    record.update(retraced)
-    record["stability"] = check_stability(policy64, demos, check).to_dict()
+    with torch_threads(fastest_threads(check) if threads is None else threads):
+        policy64 = float64_copy(policy)
+        retraced, paths = retrace(policy64, demos)
+        record = accuracy(policy64, demos, split, paths=paths)
+        stability = check_stability(policy64, demos, check)
     phased = isinstance(policy64.space, Phased)
-    record["warnings"] = warnings(record, hint=policy64.stable and not phased)
-    return record
+    said = warnings(
+        {**record, **retraced, "stability": stability.to_dict()},
+        hint=policy64.stable and not phased,
+    )
+    return Evaluation(accuracy=record, retrace=retraced, stability=stability, warnings=tuple(said))

@@ -1,5 +1,6 @@
 r"""The imitation loss: velocity matching plus a short multi-step Euler window (paper eq. 5),
-and the alignment of V's descent with the direction of travel."""
+the alignment of V's descent with the direction of travel, and the penalties on V's shape
+and warp, assembled into one step's loss by :func:`step_loss`."""
 
 from __future__ import annotations
 
@@ -7,14 +8,39 @@ import dataclasses
 import functools
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 from scipy.spatial import cKDTree
 from torch import Tensor
 
+from snds.batches import StepInputs, uniform_states, warp_draws, warp_of
 from snds.data.demonstrations import Demonstrations, Normalization, Split
 from snds.errors import DataError
+from snds.nn.flow import EuclideanizingFlow
+from snds.policy import Policy
+
+if TYPE_CHECKING:
+    from snds.train import TrainConfig
+
+__all__ = [
+    "AT_TARGET",
+    "NEAREST_REFERENCES",
+    "PULL_REFERENCES",
+    "VELOCITY_SHAPES",
+    "Samples",
+    "align_loss",
+    "make_samples",
+    "shape_penalty",
+    "shape_penalty_at",
+    "srvf",
+    "step_loss",
+    "velocity_loss",
+    "warp_penalty",
+    "warp_penalty_at",
+    "window_loss",
+]
 
 
 @dataclass(frozen=True)
@@ -260,3 +286,81 @@ def align_loss(grad: Tensor, velocity: Tensor, cosine: float) -> Tensor:
     cos = -(grad * velocity).sum(-1) / torch.sqrt(squared)
     weight = speed / speed.max().clamp_min(1e-12)
     return (weight * torch.relu(cosine - cos)).mean()
+
+
+def step_loss(policy: Policy, config: TrainConfig, inputs: StepInputs) -> torch.Tensor:
+    """The loss of paper eq. (5) with the penalties, on one step's drawn inputs; no
+    randomness of its own (so it can run under ``torch.func.vmap``)."""
+    v = inputs.velocities
+    terms = policy.field_terms(inputs.positions)
+    pi, f = terms.field, terms.nominal
+    loss = config.velocity_weight * velocity_loss(pi, v, config.velocity_shape)
+    if config.align_weight and terms.grad is not None:
+        loss = loss + config.align_weight * align_loss(terms.grad, v, config.align_cosine)
+    if config.nominal_weight and f is not None:
+        loss = loss + config.nominal_weight * velocity_loss(f, v, config.velocity_shape)
+    if inputs.windows is not None:
+        loss = loss + window_loss(policy.field, *inputs.windows)
+    # The penalties come at every k-th step only, with k times their weight: the same expected
+    # gradient at a fraction of the cost (each is a pass over V or its warp at random states).
+    every = config.penalty_every
+    if inputs.shape_states is not None:
+        shape = shape_penalty_at(policy, inputs.shape_states)
+        loss = loss + every * config.shape_weight * shape
+    if inputs.warp_draws is not None:
+        warp = warp_penalty_at(warp_of(policy), *inputs.warp_draws)
+        loss = loss + every * config.warp_weight * warp
+    return loss
+
+
+def shape_penalty(
+    policy: Policy, dim: int, generator: torch.Generator, count: int = 256
+) -> torch.Tensor:
+    r""":math:`\operatorname{Var}_x \log(V(x) / |x|^2)` at ``count`` random states, uniform in
+    :math:`[-2, 2]^n` (model coordinates); 0 exactly when V is a multiple of :math:`|x|^2` there.
+
+    Arguments:
+        policy: A policy with a Lyapunov function.
+        dim: The state dimension n.
+        generator: Source of the random states (the training's, so runs stay reproducible).
+        count: Number of states.
+    """
+    return shape_penalty_at(
+        policy, uniform_states(dim, generator, next(policy.parameters()), count)
+    )
+
+
+def shape_penalty_at(policy: Policy, x: torch.Tensor) -> torch.Tensor:
+    """:func:`shape_penalty` at given states x, shape (count, n)."""
+    ratio = policy.lyapunov(x) / (x * x).sum(-1)
+    return torch.log(ratio).var()
+
+
+def warp_penalty(
+    warp: EuclideanizingFlow, dim: int, generator: torch.Generator, count: int = 256
+) -> torch.Tensor:
+    r"""An unbiased estimate of :math:`\operatorname{E}_x \|J_\phi(x) - I\|_F^2` over
+    :math:`[-2, 2]^n` (model coordinates): :math:`\frac{1}{K} \sum_k |(J_\phi(x_k) - I)
+    u_k|^2` at ``count`` uniform random states :math:`x_k` with one Gaussian probe
+    :math:`u_k \sim N(0, I)` each (Hutchinson's estimator: :math:`\operatorname{E}_u |A u|^2
+    = \|A\|_F^2`), so it costs one Jacobian-vector product, not n. It is 0 exactly when the
+    warp is a translation there.
+
+    A warp whose Jacobian strays far from the identity makes the projected field stiff: the
+    correction :math:`a / |\nabla V|` is bounded by :math:`\rho |z| \|J_\phi^{-1}\|`, and
+    bent sublevel sets shorten the Euler steps that still decrease V.
+
+    Arguments:
+        warp: The diffeomorphism inside V.
+        dim: The state dimension n.
+        generator: Source of the random states and probes (the training's, so runs stay
+            reproducible).
+        count: Number of states.
+    """
+    return warp_penalty_at(warp, *warp_draws(dim, generator, next(warp.parameters()), count))
+
+
+def warp_penalty_at(warp: EuclideanizingFlow, x: torch.Tensor, probe: torch.Tensor) -> torch.Tensor:
+    """:func:`warp_penalty` at given states and probes, each (count, n)."""
+    _, caches = warp.forward_with_caches(x)
+    return ((warp.jvp(caches, probe) - probe) ** 2).sum(-1).mean()

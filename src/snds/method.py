@@ -88,7 +88,7 @@ def train_network(
 ) -> Fitted:
     """Trains a network policy with :func:`snds.train.fit` and records how (for any method
     whose policy is trained by gradient descent on the velocity loss: SNDS, BC, SDS-EF)."""
-    result = fit(policy, demos, split, config, progress=progress)
+    result = fit(policy, demos, split, config=config, progress=progress)
     return Fitted(policy=policy, seconds=result.seconds, record=_record(config, result))
 
 

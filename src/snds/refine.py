@@ -18,7 +18,9 @@ fresh ones, on the old demonstrations and the new, with a short schedule
 
     refined = refine(policy, demos, split, train=recorded_train_config)    # in place
 
-The schedule's measured reasons are in docs/design.md ("Refinement").
+:func:`snds.refine_run.refine_run` is the run of ``snds train --init``: a model folder
+refined with the demonstrations of a file, saved and evaluated. The schedule's measured
+reasons are in docs/design.md ("Refinement").
 """
 
 from __future__ import annotations
@@ -31,33 +33,21 @@ from pathlib import Path
 
 import numpy as np
 
-from snds.data.demonstrations import (
-    Demonstrations,
-    Split,
-    no_split,
-    split_demos,
-    split_samples,
-)
-from snds.data.source import DataSource
+from snds.callbacks import Callback
+from snds.data.demonstrations import Demonstrations, Split
 from snds.data.targets import MAX_END_SPREAD, end_at
-from snds.errors import ConfigError, DataError, ModelFileError
-from snds.io import atomic_write
-from snds.models import load_model
+from snds.errors import ConfigError, DataError
 from snds.phase import Phase
-from snds.policy import Policy, StablePolicy
-from snds.train import CHECKPOINT, TrainConfig, TrainResult, fit
+from snds.policy import Policy
+from snds.train import TrainConfig, TrainResult, fit
 
 __all__ = [
-    "DEMONSTRATIONS",
     "RefineConfig",
-    "RefinedModel",
     "Refinement",
     "added_demonstrations",
     "kept_phase",
     "refine",
-    "refine_model",
     "refine_settings",
-    "write_demonstrations",
 ]
 
 
@@ -135,9 +125,11 @@ def refine(
     config: RefineConfig = RefineConfig(),
     train: TrainConfig = TrainConfig(),
     new: Sequence[int] = (),
+    callbacks: Sequence[Callback] = (),
     progress: bool = False,
     checkpoint: Path | None = None,
     checkpoint_every: int = 200,
+    threads: int | None = None,
 ) -> Refinement:
     """Refines a trained policy (in place) on old and new demonstrations.
 
@@ -156,9 +148,11 @@ def refine(
             noise, the seed); :func:`refine_settings` gives the schedule.
         new: Indices of the new demonstrations in ``demos`` (weighted by
             ``config.new_weight``).
+        callbacks: The fit's hooks (:class:`snds.callbacks.Callback`).
         progress: Show a progress bar (only on a terminal).
         checkpoint: A ``.safetensors`` file to resume from if it exists, and to write.
         checkpoint_every: Steps between checkpoints.
+        threads: Torch CPU threads (None: the library's choice).
 
     Raises:
         DataError: If an index of ``new`` is out of range.
@@ -176,9 +170,11 @@ def refine(
         demos,
         split,
         settings,
+        callbacks=callbacks,
         progress=progress,
         checkpoint=checkpoint,
         checkpoint_every=checkpoint_every,
+        threads=threads,
     )
     return Refinement(result=result, train=settings, reach=_reach(policy, demos, split))
 
@@ -236,138 +232,3 @@ def kept_phase(phase: Phase, old: Demonstrations) -> Phase:
     """The model's phase with its extent fixed: the one it records, else the extent of the
     demonstrations it was trained on (``old``, without a phase)."""
     return phase if phase.extent is not None else dataclasses.replace(phase, extent=old.extent())
-
-
-#: The file of a refined model's directory that holds all its demonstrations, old and new,
-#: without a phase (its ``model.json`` data record names it).
-DEMONSTRATIONS = "demonstrations.csv"
-
-
-@dataclass(frozen=True)
-class RefinedModel:
-    """A model refined by :func:`refine_model`, not yet saved.
-
-    Attributes:
-        policy: The refined policy.
-        demos: All its demonstrations, in its space (a phase appended).
-        split: Which samples trained.
-        refinement: What the refinement did.
-        record: The ``model.json`` records to save it with (``data``, ``split``, ``train``,
-            ``refined_from``).
-    """
-
-    policy: Policy
-    demos: Demonstrations
-    split: Split
-    refinement: Refinement
-    record: dict
-
-
-def refine_model(
-    init: Path,
-    new: Demonstrations,
-    out: Path,
-    *,
-    added: dict | None = None,
-    config: RefineConfig = RefineConfig(),
-    progress: bool = False,
-    checkpoint_every: int = 200,
-) -> RefinedModel:
-    """Refines the model saved in ``init`` with the ``new`` demonstrations; the old ones are
-    read again from what its ``model.json`` records.
-
-    Writes ``out/demonstrations.csv`` (:data:`DEMONSTRATIONS`: old and new, which the
-    returned ``data`` record names, so that the refined model can be evaluated, plotted and
-    refined again) and the fit's checkpoint ``out/checkpoint.safetensors``, from which a
-    refinement started again with the same arguments resumes; the caller saves the model.
-
-    Arguments:
-        init: The trained model's directory.
-        new: The demonstrations to add, in user units, without a phase.
-        out: The refined model's directory (not ``init``: the trained model stays).
-        added: Where ``new`` came from (a :meth:`DataSource.record`), for the record.
-        config: The refinement's schedule.
-        progress: Show a progress bar (only on a terminal).
-        checkpoint_every: Steps between checkpoints.
-
-    Raises:
-        ModelFileError: ``init`` is not a model that refinement continues.
-        DataError: Its demonstrations cannot be read, or ``new`` does not fit them.
-    """
-    init, out = Path(init), Path(out)
-    if out.resolve() == init.resolve():
-        raise ConfigError(f"{out}: the refined model needs a directory of its own, not {init}")
-    policy, description = load_model(init)
-    if not isinstance(policy, StablePolicy) or policy.kind != StablePolicy.kind:
-        raise ModelFileError(
-            f"{init}: a {policy.method} model of {policy.space}; refinement continues the "
-            "training of snds and bc models of positions"
-        )
-    recorded = description.get("data") or {}
-    if "motion" not in recorded and "file" not in recorded:
-        raise DataError(f"{init}/model.json records no demonstrations to refine with")
-    source = DataSource.from_record(recorded)
-    try:
-        old = dataclasses.replace(source, phase=None).load()
-    except DataError as error:
-        raise DataError(
-            f"{init} was trained on demonstrations that cannot be read now: {error}"
-        ) from None
-    phase = None if source.phase is None else kept_phase(source.phase, old)
-    demos = added_demonstrations(old, new, phase=phase, max_end_spread=source.max_end_spread)
-    split_record = dict(description.get("split") or {})
-    split = _split(demos, split_record)
-    try:
-        train = TrainConfig(**(description.get("train") or {}))
-    except (TypeError, ConfigError) as error:
-        raise ModelFileError(f"{init}/model.json: unusable training settings ({error})") from None
-    write_demonstrations(added_demonstrations(old, new), out / DEMONSTRATIONS)
-    refinement = refine(
-        policy,
-        demos,
-        split,
-        config=config,
-        train=train,
-        new=range(len(old), len(demos)),
-        progress=progress,
-        checkpoint=out / CHECKPOINT,
-        checkpoint_every=checkpoint_every,
-    )
-    data = DataSource(file=out / DEMONSTRATIONS, phase=phase).record()
-    record = {
-        "data": data,
-        "split": split_record,
-        "train": refinement.train.to_dict(),
-        "refined_from": {
-            "model": str(init.resolve()),
-            "data": recorded,
-            "added": added or {},
-            "refine": config.to_dict(),
-            "reach": refinement.reach,
-        },
-    }
-    return RefinedModel(policy, demos, split, refinement, record)
-
-
-def _split(demos: Demonstrations, record: dict) -> Split:
-    """The split a model's ``split`` record describes, over old and new demonstrations:
-    the old ones' masks are those the model trained with (a sample split draws each
-    demonstration's mask in turn from one seeded stream)."""
-    if record.get("test_demos"):
-        return split_demos(demos, test_demos=record["test_demos"])
-    fraction = float(record.get("test_fraction", 0.0))
-    if fraction <= 0:
-        return no_split(demos)
-    return split_samples(demos, test_fraction=fraction, seed=int(record.get("seed", 0)))
-
-
-def write_demonstrations(demos: Demonstrations, path: Path) -> None:
-    """Writes position demonstrations (no phase) as the CSV :func:`snds.data.load_csv`
-    reads, velocities included; ``repr`` keeps every number exact."""
-    axes = range(1, demos.dim + 1)
-    lines = [",".join(["demo", "t", *(f"x{k}" for k in axes), *(f"v{k}" for k in axes)])]
-    for index, demo in enumerate(demos):
-        for t, x, v in zip(demo.times.tolist(), demo.positions.tolist(), demo.velocities.tolist()):
-            lines.append(",".join([str(index), repr(t), *map(repr, x), *map(repr, v)]))
-    text = "\n".join(lines) + "\n"
-    atomic_write(path, lambda tmp: tmp.write_text(text))

@@ -20,11 +20,11 @@ import json
 import tempfile
 from pathlib import Path
 
+from snds.checkpoint import CHECKPOINT, TrainResult
 from snds.errors import ConfigError
 from snds.io import atomic_write, remove_temporaries, to_jsonable, write_json
 from snds.models import DESCRIPTION, WEIGHTS, load_model, read_description, save_model
 from snds.policy import Policy
-from snds.train import CHECKPOINT, TrainResult
 
 __all__ = ["LOSS", "METRICS", "RunFolder"]
 

@@ -10,7 +10,8 @@ Routes (all JSON unless said; errors are ``{"error": "one line"}`` with a 4xx st
   202 with the job's status.
 * ``POST /api/jobs/{id}/refine``: the body of ``/api/train`` with the job's strokes and
   target followed by new strokes; starts ``snds train --init`` on the job's model with the new
-  strokes (:mod:`snds.refine`: about a second) as a new job, answered as ``/api/train`` is.
+  strokes (:func:`snds.refine_run.refine_run`: about a second) as a new job, answered as
+  ``/api/train`` is.
   409 if the strokes do not start with the job's own.
 * ``GET /api/jobs/{id}``: the status; with ``result`` (demonstrations, reproductions from
   their starts, target, time step) once the model is saved and ``metrics`` (``snds train``'s
@@ -69,9 +70,8 @@ from snds.app.strokes import (
     strokes_from_csv,
     write_csv,
 )
-from snds.app.worker import Job, Jobs
+from snds.app.worker import ADDED_FILE, METHODS, STROKES_FILE, Job, JobOptions, Jobs
 from snds.arrival import ARRIVAL_TOLERANCE
-from snds.cli import _build_parser
 from snds.data import Normalization
 from snds.errors import SNDSError
 from snds.evaluate import reproduce
@@ -84,7 +84,7 @@ from snds.rollout import guarded_step, policy_guard
 __all__ = [
     "LOCAL_HOSTS",
     "MAX_NUMBER_CHARACTERS",
-    "METHOD_FLAGS",
+    "SETTINGS",
     "STATIC",
     "LocalHostsOnly",
     "create_app",
@@ -95,23 +95,12 @@ STATIC = Path(__file__).parent / "static"
 #: Host names a server bound to the loopback answers to (others are refused, which stops a
 #: web page elsewhere from reaching it through DNS rebinding).
 LOCAL_HOSTS = ("127.0.0.1", "localhost", "::1", "[::1]")
-#: ``snds train`` flags of each method the page trains.
-METHOD_FLAGS: dict[str, list[str]] = {"snds": [], "bc": ["--unconstrained"]}
-#: Settings a train request may give, with their ``snds train`` flags (the rest are its
-#: defaults); the ranges are in :class:`~snds.app.strokes.Limits`.
-SETTING_FLAGS = {
-    "steps": "--steps",
-    "seed": "--seed",
-    "rollouts": "--rollouts",
-    "samples": "--samples",
-}
+#: Settings a train request may give (fields of :class:`~snds.app.worker.JobOptions`; the
+#: rest are ``snds train``'s defaults); the ranges are in :class:`~snds.app.strokes.Limits`.
+SETTINGS = ("steps", "seed", "rollouts", "samples")
 #: Longest number (characters) a request body may hold: a float64 needs at most 24
 #: (``-1.2345678901234567e-308``); longer is a mistake or an attack.
 MAX_NUMBER_CHARACTERS = 32
-#: The strokes' CSV in a job's model folder: the file ``snds train --data`` read.
-STROKES_FILE = "strokes.csv"
-#: The strokes a refinement adds, in its job's model folder (``snds train --init --data``).
-ADDED_FILE = "added.csv"
 
 
 # --- Requests and responses --------------------------------------------------------------------
@@ -221,11 +210,9 @@ def _settings(raw: Any, limits: Limits) -> dict[str, int]:
         return {}
     if not isinstance(raw, dict):
         raise RequestError(400, "'settings' must be an object")
-    unknown = sorted(set(raw) - set(SETTING_FLAGS))
+    unknown = sorted(set(raw) - set(SETTINGS))
     if unknown:
-        raise RequestError(
-            422, f"unknown setting {unknown[0]!r} (known: {', '.join(SETTING_FLAGS)})"
-        )
+        raise RequestError(422, f"unknown setting {unknown[0]!r} (known: {', '.join(SETTINGS)})")
     ranges = {
         "steps": (1, limits.max_steps),
         "seed": (0, 2**31 - 1),
@@ -276,6 +263,26 @@ def _load_results(job: Job) -> None:
             "tolerance": ARRIVAL_TOLERANCE * extent,
         },
     )
+
+
+def _export_onnx(job: Job, path: Path) -> None:
+    """Writes a job's model as ONNX (float32) with its start rule, as ``snds export`` does,
+    and checks it against the library on 10,000 random states (seed 0); a file that fails
+    the check is removed.
+
+    Raises:
+        ImportError: Without the export extra.
+        ExportError: The file's outputs differ from the library's.
+    """
+    from snds import export  # the export extra: onnx, onnxruntime
+
+    policy, _ = load_model(job.model)
+    extra = {"start_rule": job.extra["start_rule"]} if policy.space.phase_dim else {}
+    written = export.export_onnx(policy, path, dtype=torch.float32, **extra)
+    check = export.verify(written, policy, samples=10_000, seed=0)
+    if not check.passed:
+        written.unlink(missing_ok=True)
+        raise export.ExportError(f"{written.name}: {check.summary()}")
 
 
 def _report(job: Job) -> dict:
@@ -527,20 +534,17 @@ def create_app(
         body = await _json_body(request, limits)
         strokes = parse_strokes(body, limits)
         method = body.get("method", "snds")
-        if method not in METHOD_FLAGS:
-            raise RequestError(422, f"unknown method {method!r} (known: {', '.join(METHOD_FLAGS)})")
+        if method not in METHODS:
+            raise RequestError(422, f"unknown method {method!r} (known: {', '.join(METHODS)})")
         settings = _settings(body.get("settings"), limits)
-        argv = ["--quiet", "train", "--data", f"{{model}}/{STROKES_FILE}", "--out", "{model}"]
-        argv += METHOD_FLAGS[method]
-        for name, value in settings.items():
-            argv += [SETTING_FLAGS[name], str(value)]
+        options = JobOptions(method=method, **settings)
 
         def write_inputs(model: Path) -> None:
             write_csv(strokes, model / STROKES_FILE)
             # Refused now, as snds train would refuse it, rather than as a failed job.
             demonstrations_from_csv(model / STROKES_FILE, shown_as="the strokes")
 
-        job = await run_in_threadpool(jobs_of(request).start, method, settings, argv, write_inputs)
+        job = await run_in_threadpool(jobs_of(request).start, options, settings, write_inputs)
         return _json(_report(job), status=202)
 
     async def refine(request: Request) -> Response:
@@ -557,20 +561,14 @@ def create_app(
                 "its own, with its target; train again instead",
             )
         added = Strokes(strokes.positions[count:], strokes.times[count:], strokes.target)
-        settings = {k: v for k, v in base.settings.items() if k != "steps"}
-        argv = ["--quiet", "train", "--init", str(base.model), "--data", f"{{model}}/{ADDED_FILE}"]
-        argv += ["--out", "{model}"]
-        for name, value in settings.items():
-            argv += [SETTING_FLAGS[name], str(value)]
+        options = JobOptions(method=base.method, **base.settings, init=str(base.model))
 
         def write_inputs(model: Path) -> None:
             write_csv(strokes, model / STROKES_FILE)
             write_csv(added, model / ADDED_FILE)
             demonstrations_from_csv(model / ADDED_FILE, shown_as="the added strokes")
 
-        job = await run_in_threadpool(
-            jobs_of(request).start, base.method, base.settings, argv, write_inputs
-        )
+        job = await run_in_threadpool(jobs_of(request).start, options, base.settings, write_inputs)
         job.extra["refined_from"] = base.id
         return _json(_report(job), status=202)
 
@@ -656,11 +654,7 @@ def create_app(
         path = job.folder / "export" / "policy.onnx"
 
         def export() -> None:
-            # snds export itself: the same file, the same equality check, the same refusals.
-            args = _build_parser().parse_args(
-                ["--quiet", "export", str(job.model), "--format", "onnx", "--out", str(path)]
-            )
-            args.run(args)
+            _export_onnx(job, path)
 
         async with export_lock:
             if not path.is_file():

@@ -1,17 +1,19 @@
-"""Training jobs of the page: ``snds train`` in a worker process, watched by the server.
+"""Training jobs of the page: :func:`snds.run.train_run` in a worker process, watched by the
+server.
 
-Each job runs the command line's own ``snds train --data strokes.csv --out MODEL`` in a
-process of its own (``python -m snds.app.worker``), so its run folder is exactly what
-``snds train`` writes, and a crash, a kill or a runaway training cannot take the server with
-it. Importing torch and the library takes seconds, so the server keeps one spare worker that
-has done so and waits for its command line on its standard input; a job takes the spare and
-a new spare starts behind it.
+Each job runs the library's training run (:func:`snds.run.train_run`, what ``snds train``
+runs) on the strokes' CSV in a process of its own (``python -m snds.app.worker``), so its run
+folder is exactly what ``snds train`` writes with the same settings, and a crash, a kill or a
+runaway training cannot take the server with it. Importing torch and the library takes
+seconds, so the server keeps one spare worker that has done so and waits for its job's
+options (:class:`JobOptions`, as JSON) on its standard input; a job takes the spare and a new
+spare starts behind it.
 
-The worker reports to the server in JSON lines on its standard output: the training steps
-as they happen, the moment the model is saved (the page draws the field then, while the
-stability check runs), and the end. A new job cancels the one running (its process is
-killed); a worker that dies is reported as an error on its job, and the next job gets a new
-process.
+The worker reports to the server in JSON lines on its standard output, from the run's
+callbacks (:class:`Reporter`): the training steps as they happen, the moment the model is
+saved (the page draws the field then, while the stability check runs), and the end. A new
+job cancels the one running (its process is killed); a worker that dies is reported as an
+error on its job, and the next job gets a new process.
 """
 
 from __future__ import annotations
@@ -26,64 +28,112 @@ import sys
 import threading
 import time
 import uuid
-from collections.abc import Callable, Iterable, Iterator
-from dataclasses import dataclass, field
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import IO, Any
 
-__all__ = ["FINAL_STATES", "Job", "Jobs", "run_job"]
+from snds.callbacks import Callback, EndEvent, SavedEvent, StepEvent
+from snds.data import DataSource
+from snds.errors import ConfigError, SNDSError
+from snds.recipes import RECIPES
+from snds.refine_run import refine_run
+from snds.run import train_run
+from snds.stability import ROLLOUTS, SAMPLES, CheckConfig
+
+__all__ = [
+    "ADDED_FILE",
+    "FINAL_STATES",
+    "METHODS",
+    "STROKES_FILE",
+    "Job",
+    "JobOptions",
+    "Jobs",
+    "Reporter",
+    "run_job",
+]
 
 #: States after which a job changes no more.
 FINAL_STATES = frozenset({"done", "error", "cancelled"})
 #: Seconds between two progress reports of a worker (and the last step always).
 REPORT_EVERY = 0.1
+#: The methods the page trains, with whether the policy is stable (``snds train
+#: --unconstrained`` for BC).
+METHODS: dict[str, bool] = {"snds": True, "bc": False}
+#: The strokes' CSV in a job's model folder: the file the run reads.
+STROKES_FILE = "strokes.csv"
+#: The strokes a refinement adds, in its job's model folder (:func:`snds.refine_run.refine_run`).
+ADDED_FILE = "added.csv"
+
+
+@dataclass(frozen=True, kw_only=True)
+class JobOptions:
+    """What a page's training job runs: the settings a request may give, with the defaults of
+    ``snds train`` (the ranges a request may ask for are in :class:`~snds.app.strokes.Limits`).
+
+    Attributes:
+        method: "snds" or "bc" (:data:`METHODS`).
+        steps: Optimiser steps.
+        seed: Seed of the weights, the split, the fit and the check.
+        rollouts: Random starts of the stability check.
+        samples: States of the decrease check.
+        init: A model folder to refine with the strokes of ``added.csv`` (:data:`ADDED_FILE`,
+            :func:`snds.refine_run.refine_run`) instead of training on ``strokes.csv``; None:
+            train.
+    """
+
+    method: str = "snds"
+    steps: int = RECIPES["default"].train.steps
+    seed: int = 0
+    rollouts: int = ROLLOUTS
+    samples: int = SAMPLES
+    init: str | None = None
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise ConfigError(f"unknown method {self.method!r} (known: {', '.join(METHODS)})")
+
+    def to_dict(self) -> dict:
+        """JSON-ready form (what the worker reads)."""
+        return asdict(self)
 
 
 # --- In the worker process ---------------------------------------------------------------------
 
 
-class _ReportingBar:
-    """Stands in for ``tqdm`` inside :func:`snds.train.fit`: reports each step to the server.
+class Reporter(Callback):
+    """The run's callback in the worker: each event becomes a JSON message to the server.
 
-    ``fit`` has no progress callback; it shows its progress with a tqdm bar, which it builds
-    over its range of steps. In the worker (a process of its own, nothing else runs there)
-    that name is rebound to this class, which passes the real step count on.
+    Progress (``step`` done, ``total``, the smoothed ``loss``) goes at most every
+    :data:`REPORT_EVERY` seconds and at the last step; ``saved`` when the model is written.
+
+    Arguments:
+        send: Writes one message.
     """
 
-    send: Callable[[dict], None] = staticmethod(lambda message: None)
-
-    def __init__(self, iterable: Iterable | None = None, *, initial: int = 0, total=None, **_):
-        self.iterable = iterable if iterable is not None else ()
-        self.n = initial
-        self.total = total
-        self.loss: float | None = None
+    def __init__(self, send: Callable[[dict], None]) -> None:
+        self.send = send
         self.last = 0.0
+        self.latest: dict | None = None
 
-    def __iter__(self) -> Iterator:
-        for item in self.iterable:
-            yield item
-            self.update()
-
-    def update(self, n: int = 1) -> None:
-        """Counts ``n`` more steps, reporting at most every :data:`REPORT_EVERY` seconds."""
-        self.n += n
+    def on_step(self, event: StepEvent) -> None:
+        self.latest = {
+            "event": "progress",
+            "step": event.step + 1,
+            "total": event.total,
+            "loss": event.smoothed,
+        }
         now = time.perf_counter()
-        if now - self.last >= REPORT_EVERY or self.n == self.total:
+        if now - self.last >= REPORT_EVERY or event.step + 1 == event.total:
             self.last = now
-            self.send({"event": "progress", "step": self.n, "total": self.total, "loss": self.loss})
+            self.send(self.latest)
 
-    def set_postfix(self, loss: str | None = None, **_: Any) -> None:
-        """Keeps the smoothed loss that ``fit`` shows."""
-        with contextlib.suppress(TypeError, ValueError):
-            self.loss = float(loss)
+    def on_end(self, event: EndEvent) -> None:
+        if self.latest is not None:  # the last step reached, also after an early stop
+            self.send(self.latest)
 
-    def close(self) -> None:
-        """Reports the last step."""
-        self.send({"event": "progress", "step": self.n, "total": self.total, "loss": self.loss})
-
-    def __getattr__(self, name: str) -> Callable[..., None]:
-        # Any other tqdm method fit may call (refresh, set_description, ...) does nothing.
-        return lambda *args, **kwargs: None
+    def on_saved(self, event: SavedEvent) -> None:
+        self.send({"event": "saved"})
 
 
 def _cpu_seconds() -> float:
@@ -91,40 +141,43 @@ def _cpu_seconds() -> float:
     return usage.ru_utime + usage.ru_stime
 
 
-def run_job(argv: list[str], send: Callable[[dict], None]) -> None:
-    """Runs ``snds ARGV`` (a ``train`` command line), reporting each event to ``send``.
+def run_job(options: JobOptions, folder: Path, send: Callable[[dict], None]) -> None:
+    """Trains on ``folder / strokes.csv`` into ``folder`` as ``snds train`` would with the
+    same settings, reporting each event to ``send``.
 
     Events: ``progress`` (step, total, loss), ``saved`` (the model is written, the stability
     check starts), then ``done`` or ``error`` (a one-line message); each with the CPU
     seconds the job has taken so far.
     """
-    import torch
-
-    import snds.cli
-    import snds.cli.train
-    import snds.train
-    from snds.errors import SNDSError
-
     before = _cpu_seconds()
 
     def report(message: dict) -> None:
         send({**message, "cpu_seconds": _cpu_seconds() - before})
 
-    _ReportingBar.send = staticmethod(report)
-    snds.train.tqdm = _ReportingBar
-    # snds train evaluates through its module's `evaluate` attribute, which is wrapped here.
-    evaluate = snds.cli.train.evaluate
-
-    def saved_then_evaluate(*args: Any, **kwargs: Any) -> dict:
-        # snds train saves the model, then evaluates it: the page can draw the field now.
-        report({"event": "saved"})
-        return evaluate(*args, **kwargs)
-
-    snds.cli.train.evaluate = saved_then_evaluate
+    recipe = RECIPES["default"]
+    recipe = replace(
+        recipe,
+        policy=replace(recipe.policy, stable=METHODS[options.method]),
+        train=replace(recipe.train, steps=options.steps),
+    )
+    check = CheckConfig(rollouts=options.rollouts, samples=options.samples, seed=options.seed)
+    source = DataSource(
+        file=folder / STROKES_FILE, phase=recipe.phase, orientation_seed=options.seed
+    )
     try:
-        args = snds.cli._build_parser().parse_args(argv)
-        torch.set_num_threads(args.threads)
-        args.run(args)
+        if options.init is not None:
+            refine_run(
+                options.init, folder / ADDED_FILE, folder, check=check, callbacks=[Reporter(report)]
+            )
+        else:
+            train_run(
+                source,
+                folder,
+                recipe=recipe,
+                seed=options.seed,
+                check=check,
+                callbacks=[Reporter(report)],
+            )
         report({"event": "done"})
     except SNDSError as error:
         report({"event": "error", "message": str(error)})
@@ -133,17 +186,12 @@ def run_job(argv: list[str], send: Callable[[dict], None]) -> None:
 
 
 def main() -> None:
-    """``python -m snds.app.worker``: imports the library, then runs the one job whose
-    command line (a JSON list) arrives on standard input; events go to standard output."""
+    """``python -m snds.app.worker``: with the library imported, runs the one job whose
+    options (a JSON object: :class:`JobOptions` and ``folder``) arrive on standard input;
+    events go to standard output."""
     # Anything the library prints must not mix with the events: stdout becomes stderr.
     events = os.fdopen(os.dup(sys.stdout.fileno()), "w")
     os.dup2(sys.stderr.fileno(), sys.stdout.fileno())
-    import snds.cli
-
-    # The slow part, done before the job arrives: torch, the library, and the modules the
-    # command line's parser imports (the simulator's settings).
-    snds.cli._build_parser()
-
     line = sys.stdin.readline()
     if not line:
         return
@@ -152,7 +200,9 @@ def main() -> None:
         events.write(json.dumps(message) + "\n")
         events.flush()
 
-    run_job(json.loads(line), send)
+    request = json.loads(line)
+    folder = Path(request.pop("folder"))
+    run_job(JobOptions(**request), folder, send)
     events.close()
 
 
@@ -282,20 +332,17 @@ class Jobs:
         with self.lock:
             return [job for job in self.jobs.values() if not job.final]
 
-    def start(
-        self, method: str, settings: dict, argv: list[str], prepare: Callable[[Path], None]
-    ) -> Job:
-        """Starts ``snds ARGV`` for a new job, cancelling the one running.
+    def start(self, options: JobOptions, settings: dict, prepare: Callable[[Path], None]) -> Job:
+        """Starts a training run of ``options`` for a new job, cancelling the one running.
 
         Arguments:
-            method: "snds" or "bc".
+            options: What the job trains.
             settings: The request's settings, for the status.
-            argv: The command line, with ``{model}`` standing for the model directory.
             prepare: Writes the job's inputs into its model directory and checks them; what
                 it raises is raised here, before any job is cancelled or started.
         """
         job_id = uuid.uuid4().hex
-        job = Job(id=job_id, method=method, folder=self.runs / job_id, settings=settings)
+        job = Job(id=job_id, method=options.method, folder=self.runs / job_id, settings=settings)
         job.model.mkdir(parents=True)
         try:
             prepare(job.model)
@@ -313,9 +360,9 @@ class Jobs:
             job.started = time.perf_counter()
             with self.lock:
                 self.jobs[job_id] = job
-        argv = [part.replace("{model}", str(job.model)) for part in argv]
+        request = options.to_dict() | {"folder": str(job.model)}
         try:
-            worker.stdin.write(json.dumps(argv) + "\n")
+            worker.stdin.write(json.dumps(request) + "\n")
             worker.stdin.close()
         except OSError:
             pass  # the worker died: its watcher reports it

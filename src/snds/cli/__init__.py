@@ -19,6 +19,8 @@ from snds.cli import app, benchmark, evaluate, export, plot, ros, simulate, trai
 from snds.cli.train import _policy_config
 from snds.data.options import DataWarning
 from snds.errors import SNDSError
+from snds.run import RunWarning
+from snds.threads import fastest_threads
 
 __all__ = ["_build_parser", "_policy_config", "main"]
 
@@ -34,9 +36,10 @@ def _build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--threads",
         type=int,
-        default=1,
-        help="torch CPU threads (default 1: the networks are small, and one thread is "
-        "faster than two on them, more so on a busy machine)",
+        default=None,
+        help="torch CPU threads (default: the library's choice for the work's size, "
+        "snds.threads.fastest_threads; one for every size it runs, measured in "
+        "benchmarks/results/threads.json)",
     )
     commands = parser.add_subparsers(dest="command", required=True)
     for command in COMMANDS:
@@ -48,13 +51,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Runs the command line; returns the exit code (2 for bad input)."""
     parser = _build_parser()
     args = parser.parse_args(argv)
-    if args.threads < 1:
+    if args.threads is not None and args.threads < 1:
         parser.error("--threads must be >= 1")
-    torch.set_num_threads(args.threads)
+    torch.set_num_threads(fastest_threads() if args.threads is None else args.threads)
     run: Callable[[argparse.Namespace], int] = args.run
     try:
         with warnings.catch_warnings():
             warnings.showwarning = _show_warning(warnings.showwarning)
+            if args.quiet:
+                warnings.simplefilter("ignore", RunWarning)
             return run(args)
     except SNDSError as error:
         print(f"snds: error: {error}", file=sys.stderr)
@@ -65,11 +70,12 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _show_warning(fallback: Callable) -> Callable:
-    """A :func:`warnings.showwarning` that prints a :class:`DataWarning` as one line
-    ``snds: warning: ...``, and any other warning as ``fallback`` does."""
+    """A :func:`warnings.showwarning` that prints a :class:`DataWarning` or a
+    :class:`~snds.run.RunWarning` as one line ``snds: warning: ...``, and any other warning
+    as ``fallback`` does."""
 
     def show(message, category, filename, lineno, file=None, line=None) -> None:
-        if issubclass(category, DataWarning):
+        if issubclass(category, DataWarning | RunWarning):
             print(f"snds: warning: {message}", file=sys.stderr)
         else:
             fallback(message, category, filename, lineno, file, line)

@@ -13,9 +13,6 @@ from snds.data import (
     DataSource,
     Demonstrations,
     Split,
-    no_split,
-    split_demos,
-    split_samples,
 )
 from snds.data.options import ReadOptions
 from snds.errors import ConfigError, ModelFileError, SNDSError
@@ -24,6 +21,7 @@ from snds.obstacles import Scene, load_scene, parse_obstacle, parse_workspace
 from snds.phase import Phase, StartRule, start_rule
 from snds.plotting import plot_all, plot_obstacles
 from snds.policy import Policy, StablePolicy
+from snds.run import split_of
 from snds.spaces import SE3
 from snds.stability import CheckConfig
 
@@ -65,13 +63,8 @@ def _data_source(
 
 
 def _make_split(demos: Demonstrations, record: dict) -> Split:
-    """The split described by a ``split`` record of model.json."""
-    if record.get("test_demos"):
-        return split_demos(demos, test_demos=record["test_demos"])
-    fraction = float(record.get("test_fraction", 0.0))
-    if fraction <= 0:
-        return no_split(demos)
-    return split_samples(demos, test_fraction=fraction, seed=int(record.get("seed", 0)))
+    """The split described by a ``split`` record of model.json (:func:`snds.run.split_of`)."""
+    return split_of(demos, record)
 
 
 def _check_sizes(args: argparse.Namespace) -> None:

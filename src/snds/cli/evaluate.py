@@ -43,7 +43,7 @@ def run(args: argparse.Namespace) -> int:
         _refuse_obstacles(policy, "evaluate")
         return _evaluate_obstacles(args, policy, demos, scene)
     split = _make_split(demos, description.get("split", {}))
-    metrics = evaluate(policy, demos, split, check=check)
+    metrics = evaluate(policy, demos, split, check=check).to_dict()
     metrics["train_seconds"] = description.get("train_result", {}).get("seconds")
     RunFolder(args.model).write_metrics(metrics)
     if not args.quiet:

@@ -1,36 +1,22 @@
-"""``snds train``: trains a policy, saves the run folder, evaluates the model.
-
-The evaluation after training is this module's :func:`evaluate` attribute, looked up at each
-call, so that a caller (the page's worker, :mod:`snds.app.worker`) can wrap it to learn when
-the model has been saved.
-"""
+"""``snds train``: its arguments, the run (:func:`snds.run.train_run`), and its summary."""
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
-import sys
 from pathlib import Path
 
 from snds.cli._args import _check_arguments, _data_arguments, _index_list
-from snds.cli._common import (
-    _check_config,
-    _data_source,
-    _make_split,
-    _summarise,
-    _write_plots,
-)
+from snds.cli._common import _check_config, _data_source, _summarise
 from snds.cli.refine import add_arguments as add_refine_arguments
 from snds.cli.refine import run_refinement
-from snds.evaluate import evaluate
-from snds.method import make_policy
 from snds.phase import Phase
-from snds.policy import DEFAULT_WARP_LAYERS, Policy, PolicyConfig
-from snds.recipes import ARCHITECTURES, RECIPES, recipe_for
-from snds.runs import RunFolder
-from snds.train import TrainConfig, TrainResult, fit
+from snds.policy import DEFAULT_WARP_LAYERS, PolicyConfig
+from snds.recipes import ARCHITECTURES, RECIPES, Recipe
+from snds.run import SplitConfig, train_run
+from snds.train import TrainConfig
 
-__all__ = ["evaluate", "register", "run"]
+__all__ = ["register", "run"]
 
 #: The preset behind the flags' defaults (:data:`snds.recipes.RECIPES`).
 DEFAULT = RECIPES["default"]
@@ -170,54 +156,37 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     if args.init is not None:
-        # Looked up at the call, as below: a caller may wrap this module's evaluate.
-        return run_refinement(args, evaluate=lambda *a, **k: evaluate(*a, **k))
-    check = _check_config(args)
+        return run_refinement(args)
     phase = Phase(codes=args.phase_codes) if args.phase_codes else None
-    source = _data_source(args, poses=args.se3, seed=args.seed, phase=phase)
-    demos = source.load()
-    name = demos.name or source.name
-    out = args.out or Path("runs") / (f"{name}-se3" if source.poses else name)
-    policy = make_policy(demos, config=_policy_config(args), seed=args.seed)
-    split_record, train_config = _train_settings(args, recipe_for(policy.space).train)
-    split = _make_split(demos, split_record)
-    folder = RunFolder(out)
-    folder.prepare(resume=args.resume)
-    checkpoint = folder.checkpoint
-    if args.resume and not checkpoint.is_file() and not args.quiet:
-        print(f"snds: no checkpoint in {out}: training from the start", file=sys.stderr)
-    result = fit(
-        policy,
-        demos,
-        split,
-        train_config,
-        progress=not args.quiet,
-        checkpoint=checkpoint,
-        checkpoint_every=args.checkpoint_every,
+    train = _train_config(args, DEFAULT.train)
+    recipe = Recipe(policy=_policy_config(args), train=train, phase=phase)
+    split = SplitConfig(
+        test_fraction=args.test_fraction,
+        test_demos=tuple(args.test_demos) if args.test_demos is not None else None,
     )
-    _save_run(out, policy, result, data=source.record(), split=split_record, train=train_config)
-    metrics = evaluate(policy, demos, split, check=check)
-    metrics["train_seconds"] = result.seconds
-    folder.write_metrics(metrics)
-    if args.plot:
-        _write_plots(policy.to("cpu"), demos, out, result.history)
-    # Only now is the run complete: until here a kill leaves the checkpoint to resume from.
-    folder.finish()
+    result = train_run(
+        _data_source(args, poses=args.se3, seed=args.seed, phase=phase),
+        args.out,
+        recipe=recipe,
+        seed=args.seed,
+        split=split,
+        check=_check_config(args),
+        plots=args.plot,
+        resume=args.resume,
+        checkpoint_every=args.checkpoint_every,
+        progress=not args.quiet,
+        threads=args.threads,
+    )
     if not args.quiet:
-        _summarise(out, metrics)
+        _summarise(result.folder.path, result.metrics.to_dict())
     return 0
 
 
-def _train_settings(args: argparse.Namespace, base: TrainConfig) -> tuple[dict, TrainConfig]:
-    """The split record and the optimisation settings of ``snds train``'s arguments, on
-    ``base`` (the recipe of this kind of model), which gives ``--position-noise`` and
-    ``--shape-weight`` their defaults."""
-    split_record = {
-        "test_fraction": args.test_fraction,
-        "seed": args.seed,
-        "test_demos": args.test_demos,
-    }
-    train_config = dataclasses.replace(
+def _train_config(args: argparse.Namespace, base: TrainConfig) -> TrainConfig:
+    """The optimisation settings of ``snds train``'s arguments, on ``base`` (the recipe of
+    this kind of model), which gives ``--position-noise`` and ``--shape-weight`` their
+    defaults; the seed is the run's."""
+    return dataclasses.replace(
         base,
         steps=args.steps,
         window=args.window,
@@ -229,18 +198,8 @@ def _train_settings(args: argparse.Namespace, base: TrainConfig) -> tuple[dict, 
         ),
         shape_weight=base.shape_weight if args.shape_weight is None else args.shape_weight,
         warp_weight=args.warp_weight,
-        seed=args.seed,
         device=args.device,
     )
-    return split_record, train_config
-
-
-def _save_run(
-    out: Path, policy: Policy, result: TrainResult, *, data: dict, split: dict, train: TrainConfig
-) -> None:
-    """Writes a trained model with the record of how it was trained, and its loss history."""
-    record = {"data": data, "split": split, "train": train.to_dict()}
-    RunFolder(out).save(policy, result, record=record)
 
 
 def _policy_config(args: argparse.Namespace) -> PolicyConfig:

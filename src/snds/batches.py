@@ -1,0 +1,150 @@
+"""One training step's inputs: its mini-batches and the penalties' random states.
+
+:func:`draw_step` is the one place that draws from a fit's generator, in a fixed order, so a
+batched fit (:mod:`snds.batched`) draws exactly what a single one (:func:`snds.train.fit`)
+draws; the loss (:func:`snds.losses.step_loss`) then has no randomness of its own.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
+
+import torch
+
+from snds.nn.flow import EuclideanizingFlow
+from snds.policy import Policy
+
+if TYPE_CHECKING:
+    from snds.losses import Samples
+    from snds.train import TrainConfig
+
+__all__ = [
+    "StepInputs",
+    "across",
+    "corrected_batch",
+    "draw_step",
+    "uniform_states",
+    "warp_draws",
+    "warp_of",
+]
+
+
+@dataclass(frozen=True)
+class StepInputs:
+    """What one step's loss is evaluated on: its mini-batches and the penalties' random
+    states, drawn by :func:`draw_step` (model coordinates; None where the term is off).
+
+    Attributes:
+        positions: The velocity term's states, position noise added, shape (B, n).
+        velocities: Their demonstrated velocities, shape (B, n).
+        windows: The window term's starts (M, n), targets (M, Nw, n) and steps (M, Nw).
+        shape_states: The shape penalty's states, shape (256, n).
+        warp_draws: The warp penalty's random inputs (see :func:`warp_draws`).
+    """
+
+    positions: torch.Tensor
+    velocities: torch.Tensor
+    windows: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
+    shape_states: torch.Tensor | None = None
+    warp_draws: tuple[torch.Tensor, ...] | None = None
+
+
+def warp_of(policy: Policy) -> EuclideanizingFlow | None:
+    """The diffeomorphism inside a policy's V, if it has one."""
+    return getattr(getattr(policy, "lyapunov", None), "warp", None)
+
+
+def _indices(size: int, total: int, generator: torch.Generator, device: str) -> torch.Tensor | None:
+    if size == 0 or size >= total:
+        return None
+    return torch.randint(total, (size,), generator=generator).to(device)
+
+
+def draw_step(
+    policy: Policy,
+    samples: Samples,
+    config: TrainConfig,
+    generator: torch.Generator,
+    step: int = 0,
+) -> StepInputs:
+    """Draws one step's random inputs from the fit's generator: the one place that does, in
+    a fixed order (batch, noise, windows, shape states, warp draws), so a batched fit
+    (:mod:`snds.batched`) draws exactly what :func:`snds.train.fit` draws."""
+    index = _indices(config.batch_size, len(samples.positions), generator, config.device)
+    x, v = samples.positions, samples.velocities
+    if index is not None:
+        x, v = x[index], v[index]
+    if config.position_noise:
+        x = x + config.position_noise * torch.randn(x.shape, generator=generator).to(x)
+    if config.noise_correction and config.correction_share:
+        x, v = corrected_batch(x, v, samples, config, generator)
+    inputs = StepInputs(positions=x, velocities=v)
+    if config.window and len(samples.window_starts):
+        index = _indices(
+            config.window_batch_size, len(samples.window_starts), generator, config.device
+        )
+        starts, targets, steps = (
+            samples.window_starts,
+            samples.window_targets,
+            samples.window_steps,
+        )
+        if index is not None:
+            starts, targets, steps = starts[index], targets[index], steps[index]
+        inputs = replace(inputs, windows=(starts, targets, steps))
+    param = next(policy.parameters())
+    if step % config.penalty_every:
+        return inputs
+    if config.shape_weight and policy.stable:
+        inputs = replace(inputs, shape_states=uniform_states(x.shape[-1], generator, param))
+    if config.warp_weight and warp_of(policy) is not None and policy.stable:
+        inputs = replace(inputs, warp_draws=warp_draws(x.shape[-1], generator, param))
+    return inputs
+
+
+def corrected_batch(
+    x: torch.Tensor,
+    v: torch.Tensor,
+    samples: Samples,
+    config: TrainConfig,
+    generator: torch.Generator,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """A batch (B, n) with a share of its states moved off the data and their velocities
+    corrected towards the nearest training sample (see ``TrainConfig.noise_correction``)."""
+    chosen = torch.rand(len(x), generator=generator).to(x.device) < config.correction_share
+    offsets = config.correction_noise * torch.randn(x.shape, generator=generator).to(x)
+    moved = x[chosen] + offsets[chosen]
+    nearest = samples.nearest(moved)
+    anchor, velocity = samples.positions[nearest], samples.velocities[nearest]
+    if config.correction_width:
+        offset = samples.pull(moved, config.correction_width, velocity)
+    else:
+        offset = across(moved - anchor, velocity)
+    target = velocity - config.noise_correction * offset
+    x, v = x.clone(), v.clone()
+    x[chosen], v[chosen] = moved, target
+    return x, v
+
+
+def across(offset: torch.Tensor, velocity: torch.Tensor) -> torch.Tensor:
+    """The part of offsets (B, n) across the directions of travel (B, n); all of an offset
+    where the velocity is 0."""
+    speed = velocity.norm(dim=-1, keepdim=True)
+    direction = velocity / torch.where(speed > 0, speed, 1.0)
+    return offset - (offset * direction).sum(-1, keepdim=True) * direction
+
+
+def uniform_states(
+    dim: int, generator: torch.Generator, like: torch.Tensor, count: int = 256
+) -> torch.Tensor:
+    """``count`` states uniform in [-2, 2]^n (model coordinates), dtype and device of ``like``."""
+    return torch.rand(count, dim, generator=generator).to(like) * 4.0 - 2.0
+
+
+def warp_draws(
+    dim: int, generator: torch.Generator, like: torch.Tensor, count: int = 256
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`snds.losses.warp_penalty`'s random inputs: states uniform in [-2, 2]^n and one
+    Gaussian probe each, both (count, n)."""
+    x = uniform_states(dim, generator, like, count)
+    return x, torch.randn(count, dim, generator=generator).to(like)
