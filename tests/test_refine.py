@@ -13,6 +13,7 @@ import pytest
 import torch
 
 from snds import train
+from snds.callbacks import Callback
 from snds.cli import main
 from snds.data import DataSource, Demonstration, Demonstrations, Split, split_samples
 from snds.errors import ConfigError, DataError
@@ -76,21 +77,24 @@ class Killed(BaseException):
     """Stands for a kill inside a refinement."""
 
 
+class KillAfter(Callback):
+    """Stops a fit dead after ``steps`` steps."""
+
+    def __init__(self, steps: int) -> None:
+        self.steps = steps
+
+    def on_step(self, event) -> None:
+        if event.step + 1 >= self.steps:
+            raise Killed
+
+
 def test_a_killed_refinement_resumes_to_the_uninterrupted_one(task, tmp_path, monkeypatch):
     trained, demos, split = task
     reference = copy.deepcopy(trained)
     expected = refine(reference, demos, split, config=SHORT, train=TRAIN, new=[2]).result
     # GIVEN a refinement killed after 13 steps, with a checkpoint every 5
-    checkpoint, original, calls = tmp_path / CHECKPOINT, train._loss, []
-
-    def loss(*args):
-        calls.append(1)
-        if len(calls) > 13:
-            raise Killed
-        return original(*args)
-
-    with monkeypatch.context() as patch, pytest.raises(Killed):
-        patch.setattr(train, "_loss", loss)
+    checkpoint = tmp_path / CHECKPOINT
+    with pytest.raises(Killed):
         refine(
             copy.deepcopy(trained),
             demos,
@@ -98,6 +102,7 @@ def test_a_killed_refinement_resumes_to_the_uninterrupted_one(task, tmp_path, mo
             config=SHORT,
             train=TRAIN,
             new=[2],
+            callbacks=[KillAfter(13)],
             checkpoint=checkpoint,
             checkpoint_every=5,
         )
@@ -244,7 +249,7 @@ def test_a_killed_cli_refinement_resumes_bit_for_bit(trained_folder, tmp_path, m
     assert main(refine_argv(trained_folder, reference)) == 0
     # GIVEN a refinement killed after 13 steps, with a checkpoint every 5
     out = tmp_path / "killed"
-    original, calls = train._loss, []
+    original, calls = train.step_loss, []
 
     def loss(*args):
         calls.append(1)
@@ -253,7 +258,7 @@ def test_a_killed_cli_refinement_resumes_bit_for_bit(trained_folder, tmp_path, m
         return original(*args)
 
     with monkeypatch.context() as patch, pytest.raises(Killed):
-        patch.setattr(train, "_loss", loss)
+        patch.setattr(train, "step_loss", loss)
         main([*refine_argv(trained_folder, out), "--checkpoint-every", "5"])
     assert (out / CHECKPOINT).is_file() and not (out / "model.json").exists()
     # WHEN it is resumed THEN it ends with the uninterrupted refinement's model, bit for bit
