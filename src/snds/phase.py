@@ -55,10 +55,14 @@ class Phase:
         codes: Numbers m of the phase. With 1 the phase is a scalar clock shared by all
             demonstrations; with more, each demonstration gets its own random unit direction.
         seed: Seed of the codes.
+        extent: E, the length the phase is scaled by; None: the demonstrations' own extent.
+            A refined model (:mod:`snds.refine`) keeps the extent it was first trained with,
+            so that demonstrations added beyond it leave the earlier ones' phases as learnt.
     """
 
     codes: int = 3
     seed: int = 0
+    extent: float | None = None
 
     def __post_init__(self) -> None:
         # bool is an int to Python: only a true integer counts codes.
@@ -66,6 +70,9 @@ class Phase:
             raise ConfigError(f"phase codes must be an integer in 1..64, got {self.codes!r}")
         if type(self.seed) is not int:
             raise ConfigError(f"the phase seed must be an integer, got {self.seed!r}")
+        finite = isinstance(self.extent, int | float) and np.isfinite(self.extent)
+        if self.extent is not None and not (finite and self.extent > 0):
+            raise ConfigError(f"the phase extent must be a positive number, got {self.extent!r}")
 
     def codebook(self, count: int) -> np.ndarray:
         """The unit codes c_d of ``count`` demonstrations, shape (count, codes), in order; the
@@ -86,7 +93,7 @@ class Phase:
         """
         if demos.phase_dim:
             raise DataError(f"{demos.name or 'the demonstrations'} carry a phase already")
-        extent = demos.extent()
+        extent = demos.extent() if self.extent is None else self.extent
         phases = [
             extent * (1.0 - (demo.times - demo.times[0]) / demo.duration)[:, None] * code
             for demo, code in zip(demos, self.codebook(len(demos)), strict=True)
@@ -95,14 +102,15 @@ class Phase:
 
     def record(self) -> dict:
         """The JSON-ready description saved with a model (``model.json``'s ``data.phase``)."""
-        return {"codes": self.codes, "seed": self.seed}
+        extent = {} if self.extent is None else {"extent": self.extent}
+        return {"codes": self.codes, "seed": self.seed} | extent
 
     @classmethod
     def from_record(cls, record: dict) -> Phase:
         """The phase a :meth:`record` describes."""
         if not isinstance(record, dict) or "codes" not in record:
             raise DataError(f"a phase record needs its codes, got {record!r}")
-        return cls(codes=record["codes"], seed=record.get("seed", 0))
+        return cls(codes=record["codes"], seed=record.get("seed", 0), extent=record.get("extent"))
 
 
 #: How near (in extents) a new start must be to a demonstrated position to take its phase:

@@ -257,3 +257,45 @@ def test_draw_train_push_and_compare_with_bc(page, shots: Path, helpers) -> None
     page.set_input_files("#upload", str(strokes_csv))
     page.wait_for_function("sndsApp.strokes.length === 3")
     assert page.evaluate("sndsApp.target") == [float(v) for v in rows[-1].split(",")[2:]]
+
+
+def test_a_stroke_added_after_training_refines_and_undo_reverts(page, shots: Path, helpers):
+    # GIVEN a trained policy on three strokes, in draw mode
+    page.click("#train")
+    page.wait_for_function(
+        "sndsApp.jobs.snds && sndsApp.jobs.snds.status.state === 'done'", timeout=120_000
+    )
+    before = page.evaluate("sndsApp.jobs.snds.id")
+    page.click("#mode-draw")
+    # WHEN a fourth stroke is drawn
+    stroke = helpers.strokes(4, points=60)[3]
+    page.mouse.move(*_screen(page, stroke[0][:2]))
+    page.mouse.down()
+    for point in stroke[1:]:
+        page.mouse.move(*_screen(page, point[:2]))
+    page.mouse.up()
+    # THEN the page shows that it refines, with the policy before still on the board
+    assert page.evaluate("document.body.dataset.state") == "refining"
+    assert page.evaluate("sndsApp.refining !== null && sndsApp.jobs.snds.id") == before
+    assert page.text_content("#progress-label").startswith("SNDS: refining")
+    page.screenshot(path=str(shots / "app_refining.png"))
+    # and the refined field replaces it, from a new job refining the one before
+    page.wait_for_function(
+        "sndsApp.timings.refine && sndsApp.timings.refine.drawn", timeout=120_000
+    )
+    refined = page.evaluate("sndsApp.jobs.snds.id")
+    assert refined != before and page.evaluate("sndsApp.jobs.snds.refines.id") == before
+    assert page.evaluate("sndsApp.jobs.snds.result.demos.length") == 4
+    seconds = page.evaluate("(sndsApp.timings.refine.drawn - sndsApp.timings.refine.added) / 1e3")
+    assert 0 < seconds < 60
+    page.wait_for_function("sndsApp.jobs.snds.status.state === 'done'", timeout=120_000)
+    check = page.evaluate("sndsApp.jobs.snds.status.metrics.stability")
+    assert check["converged_fraction"] == 1.0 and check["decrease_violations"] == 0
+    assert page.text_content("#progress-label").startswith("SNDS refined: ")
+    page.screenshot(path=str(shots / "app_refined.png"))
+    # WHEN undo is clicked THEN the stroke goes and the policy before is back on the board
+    page.click("#undo")
+    assert page.evaluate("sndsApp.strokes.length") == 3
+    assert page.evaluate("sndsApp.jobs.snds.id") == before
+    assert page.evaluate("!!sndsApp.jobs.snds.layer && sndsApp.refining === null")
+    assert page.text_content("#status").startswith("Undone")

@@ -8,6 +8,11 @@ Routes (all JSON unless said; errors are ``{"error": "one line"}`` with a 4xx st
   "method": "snds" | "bc"?, "settings": {"steps", "seed", "rollouts", "samples"}?}``;
   starts ``snds train`` on them in a worker process (cancelling the job running) and answers
   202 with the job's status.
+* ``POST /api/jobs/{id}/refine``: the body of ``/api/train`` with the job's strokes and
+  target followed by new strokes; starts ``snds train --init`` on the job's model with the new
+  strokes (:func:`snds.refine_run.refine_run`: about a second) as a new job, answered as
+  ``/api/train`` is.
+  409 if the strokes do not start with the job's own.
 * ``GET /api/jobs/{id}``: the status; with ``result`` (demonstrations, reproductions from
   their starts, target, time step) once the model is saved and ``metrics`` (``snds train``'s
   metrics.json: the stability check) once done. ``GET /api/jobs/{id}/events``: the same as a
@@ -57,6 +62,7 @@ from snds.app.strokes import (
     LIMITS,
     Limits,
     RequestError,
+    Strokes,
     csv_text,
     demonstrations_from_csv,
     parse_strokes,
@@ -65,7 +71,7 @@ from snds.app.strokes import (
     strokes_from_csv,
     write_csv,
 )
-from snds.app.worker import METHODS, STROKES_FILE, Job, JobOptions, Jobs
+from snds.app.worker import ADDED_FILE, METHODS, STROKES_FILE, Job, JobOptions, Jobs
 from snds.arrival import ARRIVAL_TOLERANCE
 from snds.data import Normalization
 from snds.errors import SNDSError
@@ -549,6 +555,31 @@ def create_app(
         job = await run_in_threadpool(jobs_of(request).start, options, settings, write_inputs)
         return _json(_report(job), status=202)
 
+    async def refine(request: Request) -> Response:
+        base = job_of(request, saved=True)
+        body = await _json_body(request, limits)
+        strokes = parse_strokes(body, limits)
+        trained = (base.model / STROKES_FILE).read_text()
+        count = len(base.extra["demos"])
+        kept = Strokes(strokes.positions[:count], strokes.times[:count], strokes.target)
+        if len(strokes.positions) <= count or csv_text(kept) != trained:
+            raise RequestError(
+                409,
+                f"job {base.id} was trained on other strokes: refining adds strokes after "
+                "its own, with its target; train again instead",
+            )
+        added = Strokes(strokes.positions[count:], strokes.times[count:], strokes.target)
+        options = JobOptions(method=base.method, **base.settings, init=str(base.model))
+
+        def write_inputs(model: Path) -> None:
+            write_csv(strokes, model / STROKES_FILE)
+            write_csv(added, model / ADDED_FILE)
+            demonstrations_from_csv(model / ADDED_FILE, shown_as="the added strokes")
+
+        job = await run_in_threadpool(jobs_of(request).start, options, base.settings, write_inputs)
+        job.extra["refined_from"] = base.id
+        return _json(_report(job), status=202)
+
     async def status(request: Request) -> Response:
         return _json(_report(job_of(request)))
 
@@ -696,6 +727,7 @@ def create_app(
         Route("/api/health", health),
         Route("/api/limits", get_limits),
         Route("/api/train", train, methods=["POST"]),
+        Route(f"{job_path}/refine", refine, methods=["POST"]),
         Route(job_path, status),
         Route(job_path, cancel, methods=["DELETE"]),
         Route(f"{job_path}/events", events),

@@ -37,10 +37,21 @@ from snds.callbacks import Callback, EndEvent, SavedEvent, StepEvent
 from snds.data import DataSource
 from snds.errors import ConfigError, SNDSError
 from snds.recipes import RECIPES
+from snds.refine_run import refine_run
 from snds.run import train_run
 from snds.stability import ROLLOUTS, SAMPLES, CheckConfig
 
-__all__ = ["FINAL_STATES", "METHODS", "Job", "JobOptions", "Jobs", "Reporter", "run_job"]
+__all__ = [
+    "ADDED_FILE",
+    "FINAL_STATES",
+    "METHODS",
+    "STROKES_FILE",
+    "Job",
+    "JobOptions",
+    "Jobs",
+    "Reporter",
+    "run_job",
+]
 
 #: States after which a job changes no more.
 FINAL_STATES = frozenset({"done", "error", "cancelled"})
@@ -51,6 +62,8 @@ REPORT_EVERY = 0.1
 METHODS: dict[str, bool] = {"snds": True, "bc": False}
 #: The strokes' CSV in a job's model folder: the file the run reads.
 STROKES_FILE = "strokes.csv"
+#: The strokes a refinement adds, in its job's model folder (:func:`snds.refine_run.refine_run`).
+ADDED_FILE = "added.csv"
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -64,6 +77,9 @@ class JobOptions:
         seed: Seed of the weights, the split, the fit and the check.
         rollouts: Random starts of the stability check.
         samples: States of the decrease check.
+        init: A model folder to refine with the strokes of ``added.csv`` (:data:`ADDED_FILE`,
+            :func:`snds.refine_run.refine_run`) instead of training on ``strokes.csv``; None:
+            train.
     """
 
     method: str = "snds"
@@ -71,6 +87,7 @@ class JobOptions:
     seed: int = 0
     rollouts: int = ROLLOUTS
     samples: int = SAMPLES
+    init: str | None = None
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -148,14 +165,19 @@ def run_job(options: JobOptions, folder: Path, send: Callable[[dict], None]) -> 
         file=folder / STROKES_FILE, phase=recipe.phase, orientation_seed=options.seed
     )
     try:
-        train_run(
-            source,
-            folder,
-            recipe=recipe,
-            seed=options.seed,
-            check=check,
-            callbacks=[Reporter(report)],
-        )
+        if options.init is not None:
+            refine_run(
+                options.init, folder / ADDED_FILE, folder, check=check, callbacks=[Reporter(report)]
+            )
+        else:
+            train_run(
+                source,
+                folder,
+                recipe=recipe,
+                seed=options.seed,
+                check=check,
+                callbacks=[Reporter(report)],
+            )
         report({"event": "done"})
     except SNDSError as error:
         report({"event": "error", "message": str(error)})

@@ -54,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
 def _evaluate_obstacles(args: argparse.Namespace, policy: Policy, demos: Demonstrations, scene):
     """``snds evaluate`` with obstacles: the stability report under them, ``obstacles.json``."""
     scene.check(demos.dim, demos.target)
-    report = check_obstacles(policy, demos, scene, config=_check_config(args))
+    report = check_obstacles(policy, demos, scene, config=check_config(args))
     write_json(args.model / "obstacles.json", to_jsonable(report.to_dict()))
     if not args.quiet:
         r, d = report.random, report.demos

@@ -8,6 +8,8 @@ from pathlib import Path
 
 from snds.cli._args import check_arguments, data_arguments, index_list
 from snds.cli._common import check_config, data_source, summarise
+from snds.cli.refine import add_arguments as add_refine_arguments
+from snds.cli.refine import run_refinement
 from snds.phase import Phase
 from snds.policy import DEFAULT_WARP_LAYERS, PolicyConfig
 from snds.recipes import ARCHITECTURES, RECIPES, Recipe
@@ -130,6 +132,7 @@ def register(commands: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--checkpoint-every", type=int, default=200, help="steps between checkpoints"
     )
+    add_refine_arguments(parser)
     check_arguments(parser)
     parser.add_argument(
         "--se3",
@@ -152,6 +155,8 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.init is not None:
+        return run_refinement(args)
     phase = Phase(codes=args.phase_codes) if args.phase_codes else None
     train = _train_config(args, DEFAULT.train)
     recipe = Recipe(policy=policy_config(args), train=train, phase=phase)

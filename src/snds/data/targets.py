@@ -9,7 +9,7 @@ import numpy as np
 from snds.data.demonstrations import Demonstration
 from snds.errors import DataError
 
-__all__ = ["MAX_END_SPREAD", "common_target", "end_spread_message"]
+__all__ = ["MAX_END_SPREAD", "common_target", "end_at", "end_spread_message"]
 
 MAX_END_SPREAD = 0.25
 """Default largest distance of a demonstration's end from the common target, in extents."""
@@ -76,10 +76,10 @@ def common_target(
             f"max_end_spread={max_end_spread:g} allows; "
             + end_spread_message(ends, starts, target, extent, max_end_spread, numbers)
         )
-    return target, tuple(_end_at(demo, target) for demo in demos)
+    return target, tuple(end_at(demo, target) for demo in demos)
 
 
-def _end_at(demo: Demonstration, target: np.ndarray) -> Demonstration:
+def end_at(demo: Demonstration, target: np.ndarray) -> Demonstration:
     """Adds the linear-in-time offset that moves the last position of ``demo`` onto ``target``."""
     offset = target - demo.positions[-1]
     if not offset.any():

@@ -26,6 +26,11 @@
     drawn: { snds: false, bc: false },
     timings: {},
     settings: {},
+    // A stroke added after training refines the shown policy (POST /api/jobs/{id}/refine):
+    // the job doing so, shown in place of the policy once its field is drawn.
+    refining: null,
+    // What undo restores after such a stroke: {strokes: count before it, jobs, drawn}.
+    history: [],
   };
   window.sndsApp = app;
 
@@ -88,6 +93,8 @@
   }
 
   function strokesChanged() {
+    if (app.refining) cancelRefinement();
+    app.history = [];
     app.jobs = { snds: null, bc: null };
     app.drawn = { snds: false, bc: false };
     app.rollout = null;
@@ -153,6 +160,8 @@
   async function train(method) {
     if (!app.strokes.length) return;
     if (stream) stream.close();
+    if (app.refining) cancelRefinement();
+    app.history = [];
     for (const other of Object.values(app.jobs)) {
       if (other && !["done", "error", "cancelled"].includes(other.status.state)) other.status.state = "cancelled";
     }
@@ -183,16 +192,17 @@
     const mine = stream;
     mine.onmessage = (message) => {
       const status = JSON.parse(message.data);
-      if (app.jobs[job.method] !== job) {
+      if (app.jobs[job.method] !== job && app.refining !== job) {
         mine.close();
         return;
       }
       job.status = status;
-      const name = job.method.toUpperCase();
+      const name = job.method.toUpperCase() + (job.refines ? " refined" : "");
       if (status.state === "training") {
         const total = status.total || 1;
         const loss = status.loss == null ? "" : `, loss ${status.loss.toExponential(2)}`;
-        jobProgress(job, status.step / total, `${name}: step ${status.step} of ${status.total || "?"}${loss}`);
+        const doing = job.refines ? `${job.method.toUpperCase()}: refining with the new stroke,` : `${name}:`;
+        jobProgress(job, status.step / total, `${doing} step ${status.step} of ${status.total || "?"}${loss}`);
       } else if (status.state === "checking") {
         jobProgress(job, 1, `${name}: trained; checking stability...`);
       }
@@ -204,15 +214,22 @@
         // The job's time is training, then the stability check (and saving): say which is which.
         const training = status.metrics && status.metrics.train_seconds;
         const split = training == null ? ` in ${status.seconds.toFixed(1)} s` : `: ${training.toFixed(1)} s training + ${(status.seconds - training).toFixed(1)} s check`;
-        jobProgress(job, 1, `${name}: done${split}`);
+        const short = training == null ? "" : `${training.toFixed(1)} s + ${(status.seconds - training).toFixed(1)} s check`;
+        jobProgress(job, 1, job.refines ? `${name}: ${short}` : `${name}: done${split}`);
         say(job.method === "bc"
           ? "BC trained: click to start it anywhere, and compare."
-          : "Trained. Click anywhere to start the policy; drag the moving point to push it.");
+          : job.refines
+            ? "Refined with the new stroke. Draw another to refine again; Undo goes back."
+            : "Trained. Click anywhere to start the policy; drag the moving point to push it.");
         showMetrics();
       } else if (status.state === "error") {
         jobProgress(job, 0, `${name}: failed`);
-        say(status.error, true);
-        document.body.dataset.state = "error";
+        say(job.refines ? `Refining failed: ${status.error} (Undo removes the stroke)` : status.error, true);
+        if (app.refining === job) {
+          app.refining = null;
+          document.body.dataset.state = "trained";
+          draw();
+        } else document.body.dataset.state = "error";
       }
       if (["done", "error", "cancelled"].includes(status.state)) {
         mine.close();
@@ -240,13 +257,23 @@
       say(error.message, true);
       return;
     }
-    if (app.jobs[job.method] !== job) return;
+    if (app.jobs[job.method] !== job && app.refining !== job) return;
     const before = performance.now();
     job.layer = renderLayer(job);
     job.layerMs = performance.now() - before;
+    if (app.refining === job) {
+      // The refined policy takes the board: the rollout of the policy before goes with it.
+      app.refining = null;
+      app.jobs[job.method] = job;
+      app.rollout = null;
+      rolloutToken += 1;
+      app.timings.refine.drawn = performance.now();
+    } else {
+      app.timings[job.method].drawn = performance.now();
+    }
     app.drawn[job.method] = true;
-    app.timings[job.method].drawn = performance.now();
-    if (currentJob() === job) setMode("run");
+    // After a refinement the board stays in Draw mode: the next stroke refines again.
+    if (currentJob() === job && !job.refines) setMode("run");
     document.body.dataset.state = "trained";
     updateButtons();
     draw();
@@ -409,7 +436,7 @@
 
   // The job the progress bar speaks for: the one the BC box selects.
   function labelJob() {
-    return app.jobs[app.showBC ? "bc" : "snds"];
+    return app.showBC ? app.jobs.bc : app.refining || app.jobs.snds;
   }
 
   function path(points, { color, width, dash = [] }) {
@@ -513,7 +540,11 @@
     }
     const goal = target();
     if (goal) star(toPixels(goal), 11);
-    if (app.showBC && job) {
+    if (app.refining) {
+      ctx.fillStyle = "rgba(31, 111, 235, 0.9)";
+      ctx.font = "600 14px system-ui, sans-serif";
+      ctx.fillText("Refining with the new stroke...", 12, 22);
+    } else if (app.showBC && job) {
       ctx.fillStyle = "rgba(150, 40, 40, 0.85)";
       ctx.font = "600 14px system-ui, sans-serif";
       ctx.fillText(job.method === "bc" ? "BC: no stability guarantee" : "BC training; SNDS shown until it is done", 12, 22);
@@ -699,9 +730,87 @@
       draw();
       return;
     }
+    addStroke(stroke);
+  }
+
+  // A finished stroke ([x, y, t] points): it refines the policy shown, if there is one.
+  function addStroke(stroke) {
     app.strokes.push(stroke);
+    const shown = app.jobs.snds;
+    if (shown && shown.layer && !app.refining) {
+      refine(shown);
+      return;
+    }
     say(`${app.strokes.length} stroke${app.strokes.length > 1 ? "s" : ""}. Draw more, or train.`);
     strokesChanged();
+  }
+  app.addStroke = addStroke;
+
+  // --- Refinement: a stroke added after training ------------------------------------------
+
+  async function refine(base) {
+    if (stream) stream.close();
+    app.history.push({ strokes: app.strokes.length - 1, jobs: { ...app.jobs }, drawn: { ...app.drawn } });
+    // BC stays trained on the strokes before; it is dropped, and SNDS is shown.
+    app.jobs.bc = null;
+    app.drawn.bc = false;
+    app.showBC = $("bc").checked = false;
+    const job = { id: null, method: "snds", status: { state: "training" }, refines: base };
+    app.refining = job;
+    app.timings.refine = { added: performance.now() };
+    document.body.dataset.state = "refining";
+    jobProgress(job, 0, "SNDS: refining with the new stroke...");
+    say("Refining the policy with the new stroke...");
+    updateButtons();
+    draw();
+    try {
+      job.status = await api(`/api/jobs/${base.id}/refine`, strokesBody());
+    } catch (error) {
+      if (app.refining !== job) return;
+      app.refining = null;
+      say(`Refining failed: ${error.message} (Undo removes the stroke)`, true);
+      document.body.dataset.state = "trained";
+      showProgress();
+      updateButtons();
+      draw();
+      return;
+    }
+    job.id = job.status.id;
+    if (app.refining !== job) {
+      api(`/api/jobs/${job.id}`, undefined, { method: "DELETE" }).catch(() => {});
+      return;
+    }
+    watch(job);
+  }
+
+  function cancelRefinement() {
+    const job = app.refining;
+    app.refining = null;
+    if (job && job.id) api(`/api/jobs/${job.id}`, undefined, { method: "DELETE" }).catch(() => {});
+  }
+
+  // Undo of a stroke that refined the policy: the policy before it comes back.
+  function undoRefinement() {
+    const last = app.history.pop();
+    if (stream) stream.close();
+    stream = null;
+    if (app.refining) cancelRefinement();
+    app.strokes.pop();
+    app.jobs = last.jobs;
+    app.drawn = last.drawn;
+    app.rollout = null;
+    rolloutToken += 1;
+    app.showBC = $("bc").checked = false;
+    const job = app.jobs.snds;
+    if (job && !["done", "error", "cancelled"].includes(job.status.state)) {
+      job.progress = [1, "SNDS: trained (its check stopped for the refinement)"];
+    }
+    document.body.dataset.state = "trained";
+    say("Undone: the policy before the stroke is back.");
+    showProgress();
+    showMetrics();
+    updateButtons();
+    draw();
   }
   canvas.addEventListener("pointerup", pointerUp);
   canvas.addEventListener("pointercancel", pointerUp);
@@ -781,7 +890,16 @@
 
   $("mode-draw").onclick = () => setMode("draw");
   $("mode-run").onclick = () => setMode("run");
-  $("undo").onclick = () => { app.strokes.pop(); if (!app.strokes.length) app.target = null; strokesChanged(); };
+  $("undo").onclick = () => {
+    const last = app.history[app.history.length - 1];
+    if (last && last.strokes === app.strokes.length - 1) {
+      undoRefinement();
+      return;
+    }
+    app.strokes.pop();
+    if (!app.strokes.length) app.target = null;
+    strokesChanged();
+  };
   $("clear").onclick = () => { app.strokes = []; app.target = null; app.view = { ...DEFAULT_VIEW }; strokesChanged(); say("Cleared."); };
   $("train").onclick = () => { app.showBC = $("bc").checked = false; app.rollout = null; train("snds"); };
   $("bc").onchange = () => {
