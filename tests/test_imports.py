@@ -171,27 +171,16 @@ def test_our_modules_are_imported_at_the_top_except_the_extras() -> None:
     assert not lazy, "function-level imports of snds modules:\n" + "\n".join(lazy)
 
 
-#: Underscore names still imported across modules, as (importing module, name): the
-#: simulator's plot helpers and the CLI's policy flags; the list only shrinks.
-UNDERSCORE_IMPORTS_LEFT: set[tuple[str, str]] = {
-    *{
-        ("snds.sim.plots", name)
-        for name in ("_despine", "_draw_demos", "_draw_scene", "_draw_target", "_save")
-    },
-}
+#: Underscore names still imported across modules, as (importing module, name); none left.
+UNDERSCORE_IMPORTS_LEFT: set[tuple[str, str]] = set()
 
-#: Modules still without ``__all__``, all owned by other work on issue 41 (emptied when it
-#: lands).
+#: Modules still without ``__all__`` (the list only shrinks).
 WITHOUT_ALL_LEFT: set[str] = {
-    "snds._version",
     "snds.benchmark",
-    "snds.plotting",
-    "snds.rollout",
     "snds.sim.arm",
     "snds.sim.plots",
     "snds.sim.robots",
     "snds.sim.run",
-    "snds.stability",
 }
 
 
