@@ -11,27 +11,22 @@ read them. The refinement itself is :func:`snds.refine.refine`.
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-import torch
-
-from snds.callbacks import Callback, EvaluatedEvent, SavedEvent, notify
+from snds.callbacks import Callback
 from snds.checkpoint import CHECKPOINT
 from snds.data.demonstrations import Demonstrations, Split
 from snds.data.source import DataSource
 from snds.errors import ConfigError, DataError, ModelFileError
-from snds.evaluate import evaluate
 from snds.io import atomic_write
 from snds.models import load_model
-from snds.plotting import plot_all
 from snds.policy import Policy, StablePolicy
 from snds.refine import RefineConfig, Refinement, added_demonstrations, kept_phase, refine
-from snds.run import Run, RunWarning, split_of
+from snds.run import Run, RunWarning, complete_run, split_of
 from snds.runs import RunFolder
 from snds.stability import CheckConfig
 from snds.train_config import TrainConfig
@@ -124,29 +119,17 @@ def refine_run(
         threads=threads,
     )
     policy, demos, split = refined.policy, refined.demos, refined.split
-    result = refined.refinement.result
-    folder.save(policy, result, record=refined.record)
-    notify(callbacks, "on_saved", SavedEvent(folder.path))
-    metrics = evaluate(policy, demos, split, check=check, threads=threads)
-    metrics = metrics.with_train_seconds(result.seconds)
-    written = metrics.to_dict()
-    folder.write_metrics(written)
-    notify(callbacks, "on_evaluated", EvaluatedEvent(folder.path, written))
-    drawn: list[Path] = []
-    if plots:
-        shown = copy.deepcopy(policy).to(device="cpu", dtype=torch.float64).eval()
-        drawn = plot_all(shown, demos, folder.path, history=result.history)
-    # Only now is the refinement complete: until here a kill leaves the checkpoint.
-    folder.finish()
-    return Run(
-        model=policy,
-        metrics=metrics,
-        result=result,
-        folder=folder,
-        demos=demos,
-        split=split,
-        config=refined.record,
-        plots=tuple(drawn),
+    return complete_run(
+        folder,
+        policy,
+        refined.refinement.result,
+        demos,
+        split,
+        record=refined.record,
+        check=check,
+        callbacks=callbacks,
+        threads=threads,
+        plots=plots,
     )
 
 

@@ -35,7 +35,15 @@ from snds.runs import RunFolder
 from snds.stability import CheckConfig
 from snds.train import fit
 
-__all__ = ["DEFAULT_RUNS", "Run", "RunWarning", "SplitConfig", "split_of", "train_run"]
+__all__ = [
+    "DEFAULT_RUNS",
+    "Run",
+    "RunWarning",
+    "SplitConfig",
+    "complete_run",
+    "split_of",
+    "train_run",
+]
 
 
 class RunWarning(UserWarning):
@@ -179,9 +187,40 @@ def train_run(
         threads=threads,
     )
     record = {"data": source.record(), "split": split_record, "train": train.to_dict()}
+    return complete_run(
+        folder,
+        policy,
+        result,
+        demos,
+        data_split,
+        record=record,
+        check=check,
+        callbacks=callbacks,
+        threads=threads,
+        plots=plots,
+    )
+
+
+def complete_run(
+    folder: RunFolder,
+    policy: Policy,
+    result: TrainResult,
+    demos: Demonstrations,
+    split: Split,
+    *,
+    record: dict,
+    check: CheckConfig = CheckConfig(),
+    callbacks: Sequence[Callback] = (),
+    threads: int | None = None,
+    plots: bool = False,
+) -> Run:
+    """What follows a run's fit (:func:`train_run` and :func:`snds.refine_run.refine_run`):
+    saves the model with ``record`` (``model.json``), evaluates it, writes ``metrics.json``,
+    draws the plots if asked, and only then removes the checkpoint, so that a kill before
+    the end leaves a run to resume."""
     folder.save(policy, result, record=record)
     notify(callbacks, "on_saved", SavedEvent(folder.path))
-    metrics = evaluate(policy, demos, data_split, check=check, threads=threads)
+    metrics = evaluate(policy, demos, split, check=check, threads=threads)
     metrics = metrics.with_train_seconds(result.seconds)
     written = metrics.to_dict()
     folder.write_metrics(written)
@@ -190,7 +229,6 @@ def train_run(
     if plots:
         shown = copy.deepcopy(policy).to(device="cpu", dtype=torch.float64).eval()
         drawn = plot_all(shown, demos, folder.path, history=result.history)
-    # Only now is the run complete: until here a kill leaves the checkpoint to resume from.
     folder.finish()
     return Run(
         model=policy,
@@ -198,7 +236,7 @@ def train_run(
         result=result,
         folder=folder,
         demos=demos,
-        split=data_split,
+        split=split,
         config=record,
         plots=tuple(drawn),
     )
