@@ -1,7 +1,8 @@
 """The contract every method keeps, in every state space it fits.
 
 For each method of :data:`snds.methods.METHODS` and each space (positions, poses, positions
-with a phase) it fits (:attr:`~snds.methods.Method.spaces`): it fits tiny demonstrations;
+with a phase) it declares it fits (:attr:`~snds.methods.Method.spaces`; the cases are built
+from that declaration, so no pair is skipped): it fits tiny demonstrations;
 its policy maps states to finite velocities and holds still at the target; a saved and
 loaded copy gives the same velocities, bit for bit; its float64 ONNX export computes what
 the library computes; and a method with a Lyapunov function decreases it
@@ -19,10 +20,11 @@ import numpy as np
 import pytest
 import torch
 
-from snds import export
+from snds import benchmark, export
 from snds.baselines.sdsef import SDSEFConfig
 from snds.data import split_samples
 from snds.data.poses import with_synthetic_orientations
+from snds.errors import SNDSError
 from snds.fitting import Fitted
 from snds.methods import METHODS, Method
 from snds.models import load_model, save_model
@@ -34,15 +36,6 @@ from conftest import spiral_demos
 
 #: The spaces of the contract, by name, and the space a policy of each reports.
 SPACES = {"positions": Euclidean, "poses": SE3, "phase": Phased}
-
-#: Why a method does not fit a space; every other pair is tested (and the registry's
-#: ``spaces`` must agree: test_the_registry_declares_what_each_method_fits).
-UNSUPPORTED = {
-    (name, space): f"{name} fits positions only: a mixture of linear systems (or SDS-EF's flow) "
-    "on R^n, no SO(3) chart and no phase"
-    for name in ("lpvds", "seds", "sdsef")
-    for space in ("poses", "phase")
-}
 
 #: Tiny settings: every method as registered, with small networks or mixtures.
 TINY_NETWORK = PolicyConfig(
@@ -74,26 +67,40 @@ def _demos(space: str):
     return positions
 
 
+#: Every (method, space) pair the method declares it fits, and only those.
 CASES = [
-    pytest.param(
-        name,
-        space,
-        marks=[pytest.mark.skip(reason=UNSUPPORTED[name, space])]
-        if (name, space) in UNSUPPORTED
-        else [],
-        id=f"{name}-{space}",
-    )
-    for name in METHODS
-    for space in SPACES
+    pytest.param(name, space, id=f"{name}-{space}")
+    for name, method in METHODS.items()
+    for space, kind in SPACES.items()
+    if kind in method.spaces
 ]
 
 
-def test_the_registry_declares_what_each_method_fits() -> None:
-    # The pairs skipped below are exactly those whose method does not list the space.
+def test_the_cases_cover_every_method_and_every_declared_space() -> None:
+    # A space a method declares but the contract does not know would go untested, and a
+    # registry that shrank would shrink the contract silently: both fail here instead.
     assert set(METHODS) == {"snds", "bc", "lpvds", "seds", "sdsef"}
     for name, method in METHODS.items():
-        for space, kind in SPACES.items():
-            assert (kind in method.spaces) == ((name, space) not in UNSUPPORTED), (name, space)
+        assert set(method.spaces) <= set(SPACES.values()), name
+        assert Euclidean in method.spaces, f"{name} must fit positions"
+    # SNDS and behavioural cloning fit every space; the baselines (mixtures of linear
+    # systems, SDS-EF's flow) are defined on R^n only.
+    for name in ("snds", "bc"):
+        assert set(METHODS[name].spaces) == set(SPACES.values()), name
+    # every declared pair is a case
+    assert len(CASES) == sum(len(method.spaces) for method in METHODS.values()) == 9
+
+
+@pytest.mark.parametrize("name", [n for n, m in METHODS.items() if SE3 not in m.spaces])
+def test_a_method_is_refused_a_space_it_does_not_fit(name: str) -> None:
+    # A pose task for a positions-only method is refused before any work, with one line
+    # that names the method, the space and the methods that do fit it.
+    with pytest.raises(
+        SNDSError,
+        match=rf"^{name} does not fit SE3 tasks \(Line-se3\); "
+        r"methods that do: snds, bc$",
+    ):
+        benchmark.make_tasks(["Line"], [name], seeds=1, se3=True)
 
 
 @pytest.fixture(scope="module")
@@ -150,7 +157,7 @@ def test_fit_predict_save_and_load(fitted, name: str, space: str, tmp_path: Path
 SLOW_EXPORTS = {("bc", "poses"), ("bc", "phase")}
 
 EXPORT_CASES = [
-    pytest.param(*case.values, marks=[*case.marks, pytest.mark.slow], id=case.id)
+    pytest.param(*case.values, marks=[pytest.mark.slow], id=case.id)
     if tuple(case.values) in SLOW_EXPORTS
     else case
     for case in CASES

@@ -56,27 +56,36 @@ measurement (docs/design.md, "The baselines' defaults"; benchmarks/README.md,
 everywhere and the target is globally exponentially stable (for the continuous flow). If
 the check fails (a solver's tolerance), the fit tightens :math:`\epsilon` and re-solves,
 then falls back to P = I; if nothing verifies, it refuses.
+
+Step 1 lives in :mod:`snds.baselines.lpvds_mixture`, steps 2 and 3 in
+:mod:`snds.baselines.lpvds_programs` (their functions are importable from here too); this
+module holds the policy and :class:`LPVDS`, which runs the steps and verifies the result.
 """
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import asdict, dataclass
-from typing import Any, ClassVar
+from typing import ClassVar
 
 import numpy as np
-import torch
-from scipy.optimize import minimize
-from torch import Tensor
 
+from snds.baselines.lpvds_mixture import (
+    physically_consistent_mixture,
+    position_bic,
+    similarity,
+)
+from snds.baselines.lpvds_programs import (
+    fit_linear_systems,
+    fit_lyapunov_matrix,
+    lyapunov_matrix_from_factor,
+    lyapunov_violation,
+)
 from snds.baselines.mixture import (
     MixtureConfig,
     MixtureFit,
     MixtureLinearPolicy,
-    design_matrix,
     fit_mixture,
-    matrices_from_coefficients,
     require,
     single_threaded,
     subsample,
@@ -112,264 +121,6 @@ class LPVDSPolicy(MixtureLinearPolicy):
     """
 
     kind = "lpvds"
-
-
-def _solve(problem: Any, solver: str) -> str:
-    """Solves a cvxpy problem; returns its status ("solver_error" if the solver raised)."""
-    import cvxpy as cp
-
-    try:
-        problem.solve(solver=solver)
-    except cp.error.SolverError:
-        return "solver_error"
-    return str(problem.status)
-
-
-def similarity(x: np.ndarray, velocities: np.ndarray, length_scale: float) -> np.ndarray:
-    r"""The paper's physically-consistent similarity :math:`s_{ij}` of samples, shape (N, N).
-
-    :math:`s_{ij} = \frac12 (1 + \cos \angle(\dot x_i, \dot x_j))
-    \exp(-\|x_i - x_j\|^2 / 2\ell^2)`, in [0, 1], 1 on the diagonal of moving samples; a
-    sample at rest counts as every direction's half-match.
-
-    Arguments:
-        x: Positions, shape (N, n).
-        velocities: Their velocities, shape (N, n).
-        length_scale: :math:`\ell`, in the units of x.
-    """
-    speed = np.linalg.norm(velocities, axis=1, keepdims=True)
-    directions = np.divide(velocities, speed, out=np.zeros_like(velocities), where=speed > 0)
-    squared = ((x[:, None, :] - x[None, :, :]) ** 2).sum(-1)
-    return 0.5 * (1.0 + directions @ directions.T) * np.exp(-squared / (2.0 * length_scale**2))
-
-
-def position_bic(x: np.ndarray, mixture: MixtureFit) -> float:
-    r""":math:`-2 \log L + p \log N` of a full-covariance mixture over positions (N, n)."""
-    k, n = mixture.means.shape
-    log_density = np.stack(
-        [
-            np.log(w)
-            - 0.5 * np.linalg.slogdet(2 * np.pi * c)[1]
-            - 0.5 * np.einsum("ij,jk,ik->i", x - m, np.linalg.inv(c), x - m)
-            for w, m, c in zip(mixture.weights, mixture.means, mixture.covariances)
-        ]
-    )
-    peak = log_density.max(0)
-    log_likelihood = float((peak + np.log(np.exp(log_density - peak).sum(0))).sum())
-    parameters = k * (n + n * (n + 1) // 2) + k - 1
-    return -2.0 * log_likelihood + parameters * math.log(len(x))
-
-
-def physically_consistent_mixture(
-    x: np.ndarray,
-    velocities: np.ndarray,
-    *,
-    components: int | None,
-    max_components: int,
-    length_scale: float,
-    reg_covar: float,
-    seed: int,
-) -> MixtureFit:
-    r"""Clusters samples on :func:`similarity` and fits a Gaussian over positions per cluster.
-
-    Spectral clustering (Ng, Jordan & Weiss): the leading eigenvectors of the normalised
-    similarity, once, then seeded k-means on the first K of them, row-normalised, for every
-    K tried; each cluster's Gaussian is its positions' mean and covariance (plus
-    ``reg_covar`` on the diagonal), weighted by its share of samples; K is ``components``
-    or the lowest :func:`position_bic` over 2..``max_components``.
-
-    Arguments:
-        x: Positions in model coordinates, shape (N, n).
-        velocities: Their velocities, shape (N, n).
-        components: A fixed K, or None to choose by BIC.
-        max_components: The largest K tried.
-        length_scale: :math:`\ell` of the similarity, model units.
-        reg_covar: Added to every covariance's diagonal (squared model units).
-        seed: Seed of the embedding's solver and of k-means.
-    """
-    spectral_embedding = require("sklearn.manifold").spectral_embedding
-    k_means = require("sklearn.cluster").KMeans
-    n = x.shape[1]
-    largest = min(components or max_components, len(x) // (n + 1))
-    if largest < 1:
-        raise SNDSError(f"cannot fit a mixture to {len(x)} points")
-    embedding = spectral_embedding(
-        similarity(x, velocities, length_scale),
-        n_components=largest,
-        drop_first=False,
-        random_state=seed,
-    )
-    candidates = [largest] if components is not None else range(min(2, largest), largest + 1)
-    best, best_bic, bic = None, math.inf, {}
-    for k in candidates:
-        rows = (
-            embedding[:, :k] / np.maximum(np.linalg.norm(embedding[:, :k], axis=1), 1e-12)[:, None]
-        )
-        labels = k_means(n_clusters=k, n_init=4, random_state=seed).fit_predict(rows)
-        # A cluster of fewer than n + 1 points has no covariance: it joins no Gaussian.
-        members = [labels == j for j in range(k) if (labels == j).sum() > n]
-        counts = np.array([m.sum() for m in members], dtype=np.float64)
-        mixture = MixtureFit(
-            weights=counts / counts.sum(),
-            means=np.stack([x[m].mean(0) for m in members]),
-            covariances=np.stack(
-                [np.atleast_2d(np.cov(x[m].T)) + reg_covar * np.eye(n) for m in members]
-            ),
-            bic={},
-        )
-        bic[k] = position_bic(x, mixture)
-        if bic[k] < best_bic:
-            best, best_bic = mixture, bic[k]
-    assert best is not None  # candidates is never empty
-    return MixtureFit(best.weights, best.means, best.covariances, bic)
-
-
-def lyapunov_matrix_from_factor(factor: Tensor, min_eigenvalue: float) -> Tensor:
-    r""":math:`P = p_{\min} I + n (1 - p_{\min}) M / \operatorname{tr} M` with
-    :math:`M = L L^\top`: trace n, every eigenvalue in :math:`[p_{\min}, n]`.
-
-    Arguments:
-        factor: L, shape (n, n) (any square matrix; only :math:`L L^\top` matters).
-        min_eigenvalue: :math:`p_{\min} \in (0, 1)`.
-    """
-    n = factor.shape[-1]
-    m = factor @ factor.T
-    eye = torch.eye(n, dtype=factor.dtype)
-    return min_eigenvalue * eye + n * (1.0 - min_eigenvalue) * m / torch.trace(m)
-
-
-def lyapunov_violation(p: Tensor, x: Tensor, velocities: Tensor, weight: float) -> Tensor:
-    r"""The P-QLF objective :math:`\frac1N \sum_i J(\psi_i)` (step 2 of the module docstring).
-
-    Arguments:
-        p: P, shape (n, n), symmetric positive definite.
-        x: Positions in model coordinates, none at the target, shape (N, n).
-        velocities: Their velocities, none zero, shape (N, n).
-        weight: w >= 0, the reward for descending samples.
-    """
-    px = x @ p
-    psi = (px * velocities).sum(-1) / (px.norm(dim=-1) * velocities.norm(dim=-1))
-    return torch.where(psi > 0, psi**2, -weight * psi**2).mean()
-
-
-def fit_lyapunov_matrix(
-    x: np.ndarray,
-    velocities: np.ndarray,
-    *,
-    min_eigenvalue: float,
-    weight: float,
-    starts: int,
-    seed: int,
-) -> tuple[np.ndarray | None, dict]:
-    r"""The data-driven estimate of P (step 2 of the module docstring).
-
-    Arguments:
-        x: Positions in model coordinates, shape (N, n).
-        velocities: Their velocities, shape (N, n).
-        min_eigenvalue: :math:`p_{\min}`, below 1 (the trace is n).
-        weight: w of the objective.
-        starts: L-BFGS runs: from P = I, then from seeded random factors.
-        seed: Seed of the random starts.
-
-    Returns:
-        P, shape (n, n) (None if no run ended finite), and a record (the objective and the
-        fraction of samples that climb V, with P = I and with P; the runs).
-    """
-    n = x.shape[1]
-    # The target itself and standstills carry no direction.
-    keep = (np.linalg.norm(x, axis=1) > 1e-12) & (np.linalg.norm(velocities, axis=1) > 1e-12)
-    xs = torch.as_tensor(x[keep], dtype=torch.float64)
-    vs = torch.as_tensor(velocities[keep], dtype=torch.float64)
-    rows, cols = np.tril_indices(n)
-    index = (torch.as_tensor(rows), torch.as_tensor(cols))
-
-    def factor(theta: Tensor) -> Tensor:
-        return torch.zeros(n, n, dtype=torch.float64).index_put(index, theta)
-
-    def objective(theta: np.ndarray) -> tuple[float, np.ndarray]:
-        t = torch.as_tensor(theta, dtype=torch.float64).requires_grad_(True)
-        p = lyapunov_matrix_from_factor(factor(t), min_eigenvalue)
-        loss = lyapunov_violation(p, xs, vs, weight)
-        (grad,) = torch.autograd.grad(loss, t)
-        return float(loss.detach()), grad.numpy()
-
-    def climbing(p: np.ndarray) -> float:
-        return float((((x[keep] @ p) * velocities[keep]).sum(-1) > 0).mean())
-
-    identity = np.eye(n)[rows, cols]
-    rng = np.random.default_rng(seed)
-    initial = [identity] + [rng.normal(size=len(rows)) for _ in range(max(starts, 1) - 1)]
-    with torch.no_grad():
-        at_identity = float(lyapunov_violation(torch.eye(n, dtype=torch.float64), xs, vs, weight))
-    record: dict = {"objective_identity": at_identity, "climbing_identity": climbing(np.eye(n))}
-    best, runs = None, []
-    for theta in initial:
-        result = minimize(
-            objective, theta, jac=True, method="L-BFGS-B", options={"ftol": 1e-12, "gtol": 1e-10}
-        )
-        runs.append({"objective": float(result.fun), "iterations": int(result.nit)})
-        if np.isfinite(result.fun) and (best is None or result.fun < best.fun):
-            best = result
-    record["runs"] = runs
-    if best is None:
-        return None, record
-    with torch.no_grad():
-        p = lyapunov_matrix_from_factor(factor(torch.as_tensor(best.x)), min_eigenvalue)
-        p = p.numpy()
-    p = 0.5 * (p + p.T)
-    record |= {"objective": float(best.fun), "climbing": climbing(p)}
-    return p, record
-
-
-def fit_linear_systems(
-    x: np.ndarray,
-    velocities: np.ndarray,
-    gamma: np.ndarray,
-    lyapunov_matrix: np.ndarray,
-    *,
-    eps: float,
-    ridge: float,
-    solver: str,
-) -> tuple[np.ndarray | None, dict]:
-    r"""The LMI-constrained least squares for the :math:`A_k` (step 3 of the module docstring).
-
-    Arguments:
-        x: Positions in model coordinates, shape (N, n).
-        velocities: Their velocities, shape (N, n).
-        gamma: Responsibilities at the positions, shape (N, K).
-        lyapunov_matrix: P, shape (n, n).
-        eps: :math:`\epsilon > 0` of the LMIs.
-        ridge: :math:`\beta \ge 0`, keeps components with little data bounded.
-        solver: A cvxpy solver name.
-
-    Returns:
-        The :math:`A_k`, shape (K, n, n) (None if the solver failed), and a record (status,
-        the velocity MSE on these samples).
-    """
-    import cvxpy as cp
-
-    count, n = x.shape
-    k = gamma.shape[1]
-    design = design_matrix(x, gamma)
-    q, r = np.linalg.qr(design)
-    projected = q.T @ velocities
-    # |design theta - v|^2 = |r theta - q^T v|^2 + (|v|^2 - |q^T v|^2): the remainder is the
-    # part of v no theta can reach.
-    remainder = float((velocities**2).sum() - (projected**2).sum())
-    theta = cp.Variable((k * n, n))
-    blocks = [theta[i * n : (i + 1) * n, :].T for i in range(k)]
-    objective = cp.sum_squares(r @ theta - projected) / count + ridge * cp.sum_squares(theta)
-    constraints = [
-        lyapunov_matrix @ a + (lyapunov_matrix @ a).T << -eps * np.eye(n) for a in blocks
-    ]
-    problem = cp.Problem(cp.Minimize(objective), constraints)
-    status = _solve(problem, solver)
-    record: dict = {"status": status, "eps": eps}
-    if status not in ("optimal", "optimal_inaccurate") or theta.value is None:
-        return None, record
-    value = theta.value
-    record["mse"] = float(((r @ value - projected) ** 2).sum() + remainder) / count
-    return matrices_from_coefficients(value), record
 
 
 #: The mixtures of step 1 (:attr:`LPVDS.features`).
