@@ -103,6 +103,20 @@ def test_a_method_is_refused_a_space_it_does_not_fit(name: str) -> None:
         benchmark.make_tasks(["Line"], [name], seeds=1, se3=True)
 
 
+@pytest.mark.parametrize(
+    ("name", "space"),
+    [(n, s) for n, m in METHODS.items() for s, kind in SPACES.items() if kind not in m.spaces],
+)
+def test_a_method_refuses_demonstrations_of_a_space_it_does_not_fit(name: str, space: str) -> None:
+    # Handed poses or a phase directly, a positions-only method says so in one line before
+    # any work: it must not read a quaternion or a phase as more positions.
+    demos = _demos(space)
+    split = split_samples(demos, test_fraction=0.2, seed=0)
+    what = "poses" if space == "poses" else "positions with a phase"
+    with pytest.raises(SNDSError, match=rf"^{name} fits positions only, not {what}"):
+        _tiny(name).fit(demos, split, seed=0)
+
+
 @pytest.fixture(scope="module")
 def fitted(request) -> dict[tuple[str, str], Fitted]:
     """The fits, made once per (method, space) the first time a test asks for one."""

@@ -11,10 +11,13 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from snds.data.demonstrations import Demonstrations, Split
+from snds.data.poses import PoseDemonstrations
+from snds.errors import SNDSError
 from snds.policy import Policy
+from snds.spaces import SE3, Euclidean, Phased, Space
 from snds.train import TrainConfig, TrainResult, fit
 
-__all__ = ["Fitted", "train_network", "training_record"]
+__all__ = ["Fitted", "refuse_other_spaces", "train_network", "training_record"]
 
 
 @dataclass(frozen=True)
@@ -57,3 +60,24 @@ def train_network(
     whose policy is trained by gradient descent on the velocity loss: SNDS, BC, SDS-EF)."""
     result = fit(policy, demos, split, config=config, progress=progress)
     return Fitted(policy=policy, seconds=result.seconds, record=training_record(config, result))
+
+
+def refuse_other_spaces(
+    name: str, spaces: tuple[type[Space], ...], demos: Demonstrations | PoseDemonstrations
+) -> None:
+    """Raises unless ``demos`` lie in one of a method's ``spaces``: a method of positions must
+    not take a pose's quaternion or a phase for more positions.
+
+    Raises:
+        SNDSError: One line naming the method, what the demonstrations are and the methods
+            that fit them.
+    """
+    phased = getattr(demos, "phase_dim", 0) > 0
+    posed = isinstance(demos, PoseDemonstrations)
+    kind = Phased if phased else SE3 if posed else Euclidean
+    if kind in spaces:
+        return
+    what = "poses" if posed else "positions"
+    what += " with a phase (snds train's default)" if phased else ""
+    hint = "train with --phase-codes 0 or " if phased and not posed else ""
+    raise SNDSError(f"{name} fits positions only, not {what}: {hint}use snds or bc")

@@ -92,7 +92,7 @@ from snds.baselines.mixture import (
 )
 from snds.data.demonstrations import Demonstrations, Normalization, Split
 from snds.errors import SNDSError
-from snds.fitting import Fitted
+from snds.fitting import Fitted, refuse_other_spaces
 from snds.losses import make_samples
 from snds.spaces import Euclidean, Space
 
@@ -190,6 +190,7 @@ class LPVDS:
         Raises:
             SNDSError: If no fitted system passes the stability verification.
         """
+        refuse_other_spaces(self.name, self.spaces, demos)
         with single_threaded():
             return self._fit(demos, split, seed=seed)
 

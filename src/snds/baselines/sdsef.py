@@ -41,7 +41,7 @@ from torch import Tensor, nn
 
 from snds.data.demonstrations import Demonstrations, Normalization, Split
 from snds.errors import DataError
-from snds.fitting import Fitted, train_network
+from snds.fitting import Fitted, refuse_other_spaces, train_network
 from snds.nn.flow import EuclideanizingFlow, LayerCache
 from snds.policy import Policy
 from snds.spaces import Euclidean, Space
@@ -304,6 +304,7 @@ class SDSEF:
     ) -> Fitted:
         """Fits an :class:`SDSEFPolicy` to the training velocities (see
         :meth:`snds.methods.Method.fit`)."""
+        refuse_other_spaces(self.name, self.spaces, demos)
         steps = self.train_config.steps if steps is None else steps
         config = replace(self.train_config, seed=seed, steps=steps)
         policy = SDSEFPolicy(

@@ -60,7 +60,7 @@ from snds.baselines.mixture import (
     subsample,
 )
 from snds.data.demonstrations import Demonstrations, Normalization, Split
-from snds.fitting import Fitted
+from snds.fitting import Fitted, refuse_other_spaces
 from snds.losses import make_samples
 from snds.spaces import Euclidean, Space
 
@@ -270,6 +270,7 @@ class SEDS:
             SNDSError: If the fitted matrices fail the stability verification (not expected:
                 the parametrisation makes them stable).
         """
+        refuse_other_spaces(self.name, self.spaces, demos)
         with single_threaded():
             return self._fit(demos, split, seed=seed, steps=steps)
 
