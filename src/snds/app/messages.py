@@ -56,6 +56,7 @@ def json_ready(value: Any) -> Any:
 
 
 def json_response(data: Any, status: int = 200) -> Response:
+    """A JSON response of ``data`` (:func:`json_ready`: non-finite floats as null)."""
     body = json.dumps(json_ready(data), allow_nan=False, separators=(",", ":"))
     return Response(body, status_code=status, media_type="application/json")
 
@@ -130,12 +131,16 @@ async def read_json(request: Request, limits: Limits) -> dict:
 
 
 def parse_integer(value: Any, name: str, low: int, high: int) -> int:
+    """``value`` if it is an integer in [low, high] (a bool is not), else a 422 naming
+    ``name``."""
     if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
         raise RequestError(422, f"{name}: expected an integer in {low}..{high}, got {value!r}")
     return value
 
 
 def parse_positive(value: Any, name: str, high: float) -> float:
+    """``value`` as a float if it is a finite number in (0, high], else a 422 naming
+    ``name``."""
     ok = isinstance(value, int | float) and not isinstance(value, bool)
     if not (ok and math.isfinite(value) and 0 < value <= high):
         raise RequestError(422, f"{name}: expected a number in (0, {high:g}], got {value!r}")
@@ -143,6 +148,8 @@ def parse_positive(value: Any, name: str, high: float) -> float:
 
 
 def parse_settings(raw: Any, limits: Limits) -> dict[str, int]:
+    """A train request's ``settings`` (names of :data:`SETTINGS`, each an integer in its
+    range of ``limits``); ``{}`` without any."""
     if raw is None:
         return {}
     if not isinstance(raw, dict):
@@ -160,6 +167,8 @@ def parse_settings(raw: Any, limits: Limits) -> dict[str, int]:
 
 
 def parse_grid(body: dict, limits: Limits) -> tuple[np.ndarray, np.ndarray]:
+    """The grid of a field request: x (nx,) and y (ny,) spread evenly over ``bounds`` [x0, x1,
+    y0, y1], ``size`` [nx, ny] (default [40, 30], each in 2..``limits.max_grid``)."""
     bounds, size = body.get("bounds"), body.get("size", [40, 30])
     if not (isinstance(bounds, list) and len(bounds) == 4):
         raise RequestError(400, "'bounds' must be [x0, x1, y0, y1]")
@@ -184,6 +193,8 @@ def parse_phase(raw: Any, job: Job, limits: Limits) -> np.ndarray | None:
 
 
 def parse_pushes(raw: Any, limits: Limits) -> list[tuple[float, np.ndarray]]:
+    """A rollout request's ``pushes`` ``[{"at": s, "by": [dx, dy]}, ...]`` as (time,
+    displacement (2,)) pairs sorted by time; ``[]`` without any."""
     if raw is None:
         return []
     if not isinstance(raw, list):

@@ -213,6 +213,7 @@ def rollout_from(
 
 
 def zip_model(folder: Path, name: str) -> bytes:
+    """A zip archive of a model folder's files, inside a folder ``name``."""
     buffer = io.BytesIO()
     with zipfile.ZipFile(buffer, "w", compression=zipfile.ZIP_DEFLATED) as archive:
         for path in sorted(folder.iterdir()):
