@@ -6,9 +6,11 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from snds.errors import SimulationError
 from snds.sim.arm import joint_velocity, orientation_error
-from snds.sim.robots import ROBOTS, SimulationError, get_robot
-from snds.sim.run import Placement, PosePlacement, Push, SimConfig
+from snds.sim.config import Push, SimConfig
+from snds.sim.placement import Placement, PosePlacement
+from snds.sim.robots import ROBOTS, get_robot
 
 
 @pytest.fixture

@@ -17,8 +17,9 @@ from snds.cli import main
 from snds.models import save_model
 from snds.policy import PolicyConfig
 from snds.sim import Push, SimConfig, simulate
+from snds.sim.placement import Placement, default_scale
+from snds.sim.recovery import rest_of_path, unpushed_path
 from snds.sim.robots import get_robot
-from snds.sim.run import Placement, default_scale, rest_of_path, unpushed_path
 
 from conftest import SMALL, make_policy, spiral_demos
 

@@ -26,30 +26,27 @@ Routes (all JSON unless said; errors are ``{"error": "one line"}`` with a 4xx st
 * ``GET /api/jobs/{id}/model.zip``, ``/policy.onnx``, ``/strokes.csv``: downloads.
 * ``POST /api/strokes.csv``: strokes (JSON) to the CSV ``snds train --data`` reads;
   ``POST /api/strokes/upload`` (``text/csv``): such a CSV back to strokes.
+
+The routes are here; what they read and answer is in :mod:`snds.app.messages`, what they
+compute from a job in :mod:`snds.app.results`, the jobs themselves in :mod:`snds.app.worker`,
+and the host check in :mod:`snds.app.hosts`.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
-import io
 import json
-import math
 import shutil
 import socket
 import tempfile
 import threading
 import webbrowser
-import zipfile
 from collections.abc import AsyncIterator
 from pathlib import Path
-from typing import Any
 
-import numpy as np
-import torch
 from starlette.applications import Starlette
 from starlette.concurrency import run_in_threadpool
-from starlette.datastructures import Headers
 from starlette.exceptions import HTTPException
 from starlette.middleware import Middleware
 from starlette.requests import Request
@@ -58,6 +55,29 @@ from starlette.routing import Mount, Route
 from starlette.staticfiles import StaticFiles
 
 from snds import __version__
+from snds.app.hosts import LOCAL_HOSTS, LocalHostsOnly
+from snds.app.messages import (
+    MAX_NUMBER_CHARACTERS,
+    SETTINGS,
+    json_ready,
+    json_response,
+    parse_grid,
+    parse_phase,
+    parse_positive,
+    parse_pushes,
+    parse_settings,
+    read_body,
+    read_json,
+)
+from snds.app.results import (
+    field_on_grid,
+    load_results,
+    report,
+    rollout_from,
+    warm_up_policy,
+    write_onnx,
+    zip_model,
+)
 from snds.app.strokes import (
     LIMITS,
     Limits,
@@ -67,21 +87,11 @@ from snds.app.strokes import (
     demonstrations_from_csv,
     parse_strokes,
     parse_target,
-    parse_vector,
     strokes_from_csv,
     write_csv,
 )
 from snds.app.worker import ADDED_FILE, METHODS, STROKES_FILE, Job, JobOptions, Jobs
-from snds.arrival import ARRIVAL_TOLERANCE
-from snds.data import Normalization
 from snds.errors import SNDSError
-from snds.evaluate import reproduce
-from snds.io import to_jsonable
-from snds.models import load_model
-from snds.phase import Phase, start_rule
-from snds.policy import PolicyConfig, StablePolicy, float64_copy
-from snds.rollout import policy_guard, rollout
-from snds.steppers import GuardedEuler
 
 __all__ = [
     "LOCAL_HOSTS",
@@ -94,401 +104,6 @@ __all__ = [
 ]
 
 STATIC = Path(__file__).parent / "static"
-#: Host names a server bound to the loopback answers to (others are refused, which stops a
-#: web page elsewhere from reaching it through DNS rebinding).
-LOCAL_HOSTS = ("127.0.0.1", "localhost", "::1", "[::1]")
-#: Settings a train request may give (fields of :class:`~snds.app.worker.JobOptions`; the
-#: rest are ``snds train``'s defaults); the ranges are in :class:`~snds.app.strokes.Limits`.
-SETTINGS = ("steps", "seed", "rollouts", "samples")
-#: Longest number (characters) a request body may hold: a float64 needs at most 24
-#: (``-1.2345678901234567e-308``); longer is a mistake or an attack.
-MAX_NUMBER_CHARACTERS = 32
-
-
-# --- Requests and responses --------------------------------------------------------------------
-
-
-def _finite(value: Any) -> Any:
-    """JSON-ready data (:func:`snds.io.to_jsonable`) with non-finite floats as null."""
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, dict):
-        return {k: _finite(v) for k, v in value.items()}
-    return [_finite(v) for v in value] if isinstance(value, list) else value
-
-
-def _clean(value: Any) -> Any:
-    """JSON-ready: NumPy to lists and floats, non-finite floats to null (JSON has no NaN)."""
-    return _finite(to_jsonable(value))
-
-
-def _json(data: Any, status: int = 200) -> Response:
-    body = json.dumps(_clean(data), allow_nan=False, separators=(",", ":"))
-    return Response(body, status_code=status, media_type="application/json")
-
-
-async def _body(request: Request, limits: Limits, *, media: str) -> bytes:
-    """The request's body, refused (415, 413) unless of type ``media`` and within the limit."""
-    kind = request.headers.get("content-type", "").split(";")[0].strip().lower()
-    if kind != media:
-        raise RequestError(415, f"expected Content-Type {media}, got {kind or 'none'}")
-    declared = request.headers.get("content-length")
-    if declared is not None and declared.isdigit() and int(declared) > limits.max_body_bytes:
-        raise RequestError(413, f"body of {int(declared)} bytes, at most {limits.max_body_bytes}")
-    chunks, size = [], 0
-    async for chunk in request.stream():
-        size += len(chunk)
-        if size > limits.max_body_bytes:
-            raise RequestError(413, f"body larger than {limits.max_body_bytes} bytes")
-        chunks.append(chunk)
-    return b"".join(chunks)
-
-
-def _refuse_constant(name: str) -> None:
-    raise RequestError(400, f"malformed JSON: {name} is not a JSON number")
-
-
-def _shown(text: str) -> str:
-    """A number's text as a message quotes it: whole if short, else its start and length."""
-    return text if len(text) <= 20 else f"{text[:12]}... ({len(text)} characters)"
-
-
-def _json_number(text: str) -> int | float:
-    """Every number of a request body, parsed in one place (:func:`json.loads`'s hooks):
-    at most :data:`MAX_NUMBER_CHARACTERS` characters and finite as a float, so that no field
-    meets a number that overflows a float (``OverflowError``) or an integer too long for
-    Python to read (``ValueError`` beyond 4,300 digits); each field then checks its range."""
-    if len(text) > MAX_NUMBER_CHARACTERS:
-        raise RequestError(
-            422,
-            f"a number of {len(text)} characters ({_shown(text)}); at most "
-            f"{MAX_NUMBER_CHARACTERS} are read",
-        )
-    number = float(text)
-    if not math.isfinite(number):
-        raise RequestError(422, f"the number {_shown(text)} is beyond a float's range (1.8e308)")
-    is_integer = not any(c in text for c in ".eE")
-    return int(text) if is_integer else number
-
-
-async def _json_body(request: Request, limits: Limits) -> dict:
-    """The request's JSON object (400 if it is not one)."""
-    raw = await _body(request, limits, media="application/json")
-    try:
-        body = json.loads(
-            raw.decode("utf-8"),
-            parse_constant=_refuse_constant,
-            parse_int=_json_number,
-            parse_float=_json_number,
-        )
-    except UnicodeDecodeError:
-        raise RequestError(400, "malformed JSON: not UTF-8") from None
-    except json.JSONDecodeError as error:
-        raise RequestError(
-            400, f"malformed JSON: {error.msg} at line {error.lineno} column {error.colno}"
-        ) from None
-    except RecursionError:
-        raise RequestError(400, "malformed JSON: nested too deeply") from None
-    if not isinstance(body, dict):
-        raise RequestError(400, "expected a JSON object")
-    return body
-
-
-def _integer(value: Any, name: str, low: int, high: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
-        raise RequestError(422, f"{name}: expected an integer in {low}..{high}, got {value!r}")
-    return value
-
-
-def _positive(value: Any, name: str, high: float) -> float:
-    ok = isinstance(value, int | float) and not isinstance(value, bool)
-    if not (ok and math.isfinite(value) and 0 < value <= high):
-        raise RequestError(422, f"{name}: expected a number in (0, {high:g}], got {value!r}")
-    return float(value)
-
-
-def _settings(raw: Any, limits: Limits) -> dict[str, int]:
-    if raw is None:
-        return {}
-    if not isinstance(raw, dict):
-        raise RequestError(400, "'settings' must be an object")
-    unknown = sorted(set(raw) - set(SETTINGS))
-    if unknown:
-        raise RequestError(422, f"unknown setting {unknown[0]!r} (known: {', '.join(SETTINGS)})")
-    ranges = {
-        "steps": (1, limits.max_steps),
-        "seed": (0, 2**31 - 1),
-        "rollouts": (1, limits.max_rollouts),
-        "samples": (0, limits.max_samples),
-    }
-    return {k: _integer(v, f"settings.{k}", *ranges[k]) for k, v in raw.items()}
-
-
-# --- Results -----------------------------------------------------------------------------------
-
-
-def _warm_up() -> None:
-    """Builds and runs a policy once: torch's first use of these layers takes over a second,
-    which the first trained model's field would otherwise wait for."""
-    normalization = Normalization(center=np.zeros(2), length=1.0, time=1.0)
-    policy = float64_copy(StablePolicy(dim=2, normalization=normalization, config=PolicyConfig()))
-    with torch.no_grad():
-        policy(torch.zeros(2, 2, dtype=torch.float64))
-        policy_guard(policy)[0](torch.ones(2, 2, dtype=torch.float64))
-
-
-def _load_results(job: Job) -> None:
-    """Reads a job's saved model and data (in the job's watcher thread, once)."""
-    policy, description = load_model(job.model)
-    policy64 = float64_copy(policy)
-    demos = demonstrations_from_csv(job.model / STROKES_FILE, shown_as=STROKES_FILE)
-    phase = description.get("data", {}).get("phase")
-    if phase is not None:
-        # The model's states carry the phase it was trained with (snds.phase).
-        demos = Phase.from_record(phase).apply(demos)
-    paths = reproduce(policy64, demos, list(range(len(demos))))
-    extent = demos.extent()
-    job.extra.update(
-        policy=policy64,
-        demos=demos,
-        # How a click gets its phase, built once for every field and rollout of the job.
-        start_rule=start_rule(demos) if demos.phase_dim else None,
-        result={
-            "stable": policy64.stable,
-            "target": demos.target[:2],
-            "demos": [d.positions[:, :2] for d in demos],
-            "reproductions": [path[:, :2] for path in paths],
-            "dt": demos.mean_dt(),
-            "duration": demos.max_duration(),
-            "extent": extent,
-            # As the stability check counts a rollout arrived (snds.arrival).
-            "tolerance": ARRIVAL_TOLERANCE * extent,
-        },
-    )
-
-
-def _export_onnx(job: Job, path: Path) -> None:
-    """Writes a job's model as ONNX (float32) with its start rule, as ``snds export`` does,
-    and checks it against the library on 10,000 random states (seed 0); a file that fails
-    the check is removed.
-
-    Raises:
-        ImportError: Without the export extra.
-        ExportError: The file's outputs differ from the library's.
-    """
-    from snds import export  # the export extra: onnx, onnxruntime
-
-    policy, _ = load_model(job.model)
-    extra = {"start_rule": job.extra["start_rule"]} if policy.space.phase_dim else {}
-    written = export.export_onnx(policy, path, dtype=torch.float32, **extra)
-    check = export.verify(written, policy, samples=10_000, seed=0)
-    if not check.passed:
-        written.unlink(missing_ok=True)
-        raise export.ExportError(f"{written.name}: {check.summary()}")
-
-
-def _report(job: Job) -> dict:
-    """The job's status, with its results as far as they exist."""
-    report = job.status()
-    if "result" in job.extra:
-        report["result"] = job.extra["result"]
-    if job.state == "done":
-        if "metrics" not in job.extra:
-            job.extra["metrics"] = json.loads((job.model / "metrics.json").read_text())
-        report["metrics"] = job.extra["metrics"]
-    return report
-
-
-def _grid(body: dict, limits: Limits) -> tuple[np.ndarray, np.ndarray]:
-    bounds, size = body.get("bounds"), body.get("size", [40, 30])
-    if not (isinstance(bounds, list) and len(bounds) == 4):
-        raise RequestError(400, "'bounds' must be [x0, x1, y0, y1]")
-    x0, x1 = parse_target(bounds[:2], limits, name="bounds")
-    y0, y1 = parse_target(bounds[2:], limits, name="bounds")
-    if not (x0 < x1 and y0 < y1):
-        raise RequestError(422, "bounds: expected x0 < x1 and y0 < y1")
-    if not (isinstance(size, list) and len(size) == 2):
-        raise RequestError(400, "'size' must be [nx, ny]")
-    nx, ny = (_integer(n, "size", 2, limits.max_grid) for n in size)
-    return np.linspace(x0, x1, nx), np.linspace(y0, y1, ny)
-
-
-def _states(job: Job, points: np.ndarray) -> np.ndarray:
-    """The states a start at each point (B, 2) takes: the point, with a model's phase the
-    phase a new start there gets (:func:`snds.phase.start_rule`)."""
-    rule = job.extra["start_rule"]
-    return points if rule is None else rule.start_states(points)
-
-
-@torch.no_grad()
-def field_on_grid(job: Job, xs: np.ndarray, ys: np.ndarray) -> dict:
-    """Velocities (ny, nx, 2) and V (ny, nx; None without one) of a job's policy on a grid:
-    for a model with a phase, the velocity a new start at each point begins with."""
-    policy = job.extra["policy"]
-    points = _states(job, np.stack(np.meshgrid(xs, ys), axis=-1).reshape(-1, 2))
-    velocity = policy.predict(points)[:, :2].reshape(len(ys), len(xs), 2)
-    value = None
-    if policy.stable:
-        lyapunov, _ = policy_guard(policy)
-        value = lyapunov(torch.from_numpy(points)).numpy().reshape(len(ys), len(xs))
-    return {"x": xs, "y": ys, "velocity": velocity, "V": value}
-
-
-def _phase(raw: Any, job: Job, limits: Limits) -> np.ndarray | None:
-    """A rollout's phase to start with (a continuation's), or None: a new start's own."""
-    if raw is None:
-        return None
-    size = job.extra["demos"].phase_dim
-    if not size:
-        raise RequestError(422, "'phase' is for a model with a phase; this one has none")
-    return parse_vector(raw, size, limits, name="phase")
-
-
-def _pushes(raw: Any, limits: Limits) -> list[tuple[float, np.ndarray]]:
-    if raw is None:
-        return []
-    if not isinstance(raw, list):
-        raise RequestError(400, '\'pushes\' must be a list of {"at": s, "by": [dx, dy]}')
-    if len(raw) > limits.max_pushes:
-        raise RequestError(422, f"{len(raw)} pushes, at most {limits.max_pushes}")
-    pushes = []
-    for i, push in enumerate(raw):
-        if not isinstance(push, dict) or set(push) != {"at", "by"}:
-            raise RequestError(400, f'push {i}: expected {{"at": s, "by": [dx, dy]}}')
-        at = push["at"]
-        if isinstance(at, bool) or not isinstance(at, int | float) or not (0 <= at < math.inf):
-            raise RequestError(422, f"push {i}: 'at' must be a time >= 0 in seconds")
-        pushes.append((float(at), parse_target(push["by"], limits, name=f"push {i}")))
-    return sorted(pushes, key=lambda push: push[0])
-
-
-@torch.no_grad()
-def rollout_from(
-    job: Job,
-    start: np.ndarray,
-    *,
-    phase: np.ndarray | None = None,
-    pushes: list[tuple[float, np.ndarray]],
-    duration: float,
-    dt: float,
-    max_steps: int,
-) -> dict:
-    """A rollout of a job's policy: the guarded step for a stable policy, else plain Euler.
-
-    A model with a phase starts with ``phase``, or, without one, with the phase a new start
-    gets (:func:`snds.phase.start_rule`); each push displaces the position at its time and
-    the phase keeps its value. The rollout ends at ``duration`` (or after
-    ``max_steps`` steps), or when the state is within the stability check's tolerance of the
-    target with no push left.
-    """
-    policy = job.extra["policy"]
-    result = job.extra["result"]
-    target = torch.tensor(np.array(result["target"], dtype=np.float64))
-    tolerance = result["tolerance"]
-    steps = math.ceil(duration / dt)
-    if steps > max_steps:
-        raise RequestError(
-            422, f"duration / dt = {steps} steps, at most {max_steps}; take a longer dt"
-        )
-    state = _states(job, np.reshape(start, (1, 2))) if phase is None else [[*start, *phase]]
-    x = torch.as_tensor(np.asarray(state), dtype=torch.float64)
-    # A push moves the position; a phase keeps its value.
-    pad = [0.0] * (x.shape[1] - 2)
-    t, times, states, shortened = 0.0, [0.0], [x[0, :2].tolist()], 0
-    phases = [x[0, 2:].tolist()]
-    pending = list(pushes)
-
-    def stop(x: torch.Tensor) -> torch.Tensor:
-        finite = torch.isfinite(x).all(dim=-1)
-        arrived = (x[:, :2] - target).norm(dim=-1) <= tolerance
-        return ~finite | (arrived if not pending else torch.zeros_like(finite))
-
-    used = 0
-    # Until the duration: the guard's shorter steps take more of them (at most max_steps).
-    while used < max_steps and t < duration:
-        while pending and pending[0][0] <= t:
-            x = x + torch.as_tensor([*pending.pop(0)[1], *pad])
-            times.append(t)
-            states.append(x[0, :2].tolist())
-            phases.append(x[0, 2:].tolist())
-        # One piece of the rollout: to the next push, the end, or arrival.
-        until = min(duration, pending[0][0]) if pending else duration
-        piece = rollout(
-            policy,
-            x,
-            dt=dt,
-            steps=max_steps - used,
-            stepper=GuardedEuler(),
-            start_time=t,
-            duration=until,
-            until=stop,
-        )
-        times += piece.times[1:, 0].tolist()
-        states += piece.states[1:, 0, :2].tolist()
-        phases += piece.states[1:, 0, 2:].tolist()
-        shortened += int((piece.taken < dt).sum())
-        x, t, used = piece.final, float(piece.final_time[0]), used + piece.steps
-        if bool(stop(x)[0]):
-            break
-    distance = float((x[0, :2] - target).norm())
-    return {
-        "t": times,
-        "states": states,
-        "phases": phases,
-        "arrived": distance <= tolerance,
-        "final_distance": distance,
-        "tolerance": tolerance,
-        "integrator": "guarded euler" if policy.stable else "euler",
-        "shortened_steps": shortened,
-        "dt": dt,
-    }
-
-
-def _zip_model(folder: Path, name: str) -> bytes:
-    buffer = io.BytesIO()
-    with zipfile.ZipFile(buffer, "w", compression=zipfile.ZIP_DEFLATED) as archive:
-        for path in sorted(folder.iterdir()):
-            # atomic_write's temporaries (".name.tmp") are not part of the model.
-            if path.is_file() and not path.name.startswith("."):
-                archive.write(path, f"{name}/{path.name}")
-    return buffer.getvalue()
-
-
-# --- The application ---------------------------------------------------------------------------
-
-
-def _host_name(header: str) -> str:
-    """The host name of a ``Host`` header, without its port (``[::1]:8765`` -> ``[::1]``)."""
-    if header.startswith("["):
-        return header[: header.find("]") + 1]
-    return header.split(":")[0]
-
-
-class LocalHostsOnly:
-    """ASGI middleware that answers a request for another host name with the JSON 400 of
-    every refusal (``{"error": ...}``): a page elsewhere that rebinds its DNS name to the
-    loopback (DNS rebinding) does not reach the API.
-
-    Arguments:
-        app: The application.
-        allowed: Host names answered (``"*"``: any).
-    """
-
-    def __init__(self, app: Any, allowed: tuple[str, ...] | list[str]) -> None:
-        self.app = app
-        self.allowed = set(allowed)
-
-    async def __call__(self, scope: dict, receive: Any, send: Any) -> None:
-        if scope["type"] in ("http", "websocket") and "*" not in self.allowed:
-            host = _host_name(Headers(scope=scope).get("host", ""))
-            if host not in self.allowed:
-                reason = (
-                    f"host {_shown(host)!r} is not served here (only "
-                    f"{', '.join(sorted(self.allowed))}); open the page at its address"
-                )
-                await _json({"error": reason}, 400)(scope, receive, send)
-                return
-        await self.app(scope, receive, send)
 
 
 def create_app(
@@ -531,20 +146,20 @@ def create_app(
         return FileResponse(STATIC / "favicon.svg", media_type="image/svg+xml")
 
     async def health(request: Request) -> Response:
-        return _json(
+        return json_response(
             {"ok": True, "version": __version__, "running": len(jobs_of(request).running())}
         )
 
     async def get_limits(request: Request) -> Response:
-        return _json(limits.to_dict())
+        return json_response(limits.to_dict())
 
     async def train(request: Request) -> Response:
-        body = await _json_body(request, limits)
+        body = await read_json(request, limits)
         strokes = parse_strokes(body, limits)
         method = body.get("method", "snds")
         if method not in METHODS:
             raise RequestError(422, f"unknown method {method!r} (known: {', '.join(METHODS)})")
-        settings = _settings(body.get("settings"), limits)
+        settings = parse_settings(body.get("settings"), limits)
         options = JobOptions(method=method, **settings)
 
         def write_inputs(model: Path) -> None:
@@ -553,11 +168,11 @@ def create_app(
             demonstrations_from_csv(model / STROKES_FILE, shown_as="the strokes")
 
         job = await run_in_threadpool(jobs_of(request).start, options, settings, write_inputs)
-        return _json(_report(job), status=202)
+        return json_response(report(job), status=202)
 
     async def refine(request: Request) -> Response:
         base = job_of(request, saved=True)
-        body = await _json_body(request, limits)
+        body = await read_json(request, limits)
         strokes = parse_strokes(body, limits)
         trained = (base.model / STROKES_FILE).read_text()
         count = len(base.extra["demos"])
@@ -578,21 +193,21 @@ def create_app(
 
         job = await run_in_threadpool(jobs_of(request).start, options, base.settings, write_inputs)
         job.extra["refined_from"] = base.id
-        return _json(_report(job), status=202)
+        return json_response(report(job), status=202)
 
     async def status(request: Request) -> Response:
-        return _json(_report(job_of(request)))
+        return json_response(report(job_of(request)))
 
     async def cancel(request: Request) -> Response:
         job = job_of(request)
         jobs_of(request).cancel(job)
-        return _json(_report(job))
+        return json_response(report(job))
 
     async def events(request: Request) -> Response:
         job = job_of(request)
 
-        def event(report: dict) -> str:
-            return f"data: {json.dumps(_clean(report), allow_nan=False)}\n\n"
+        def event(data: dict) -> str:
+            return f"data: {json.dumps(json_ready(data), allow_nan=False)}\n\n"
 
         async def stream() -> AsyncIterator[str]:
             version, quiet, seen = -1, 0.0, 0
@@ -605,7 +220,7 @@ def create_app(
                         result = {"result": job.extra["result"]} if "result" in job.extra else {}
                         yield event({**missed, **result})
                     seen = max(seen, len(milestones))
-                    yield event(_report(job))
+                    yield event(report(job))
                     quiet = 0.0
                     if job.final:
                         return
@@ -621,20 +236,20 @@ def create_app(
 
     async def field(request: Request) -> Response:
         job = job_of(request, saved=True)
-        xs, ys = _grid(await _json_body(request, limits), limits)
-        return _json(await run_in_threadpool(field_on_grid, job, xs, ys))
+        xs, ys = parse_grid(await read_json(request, limits), limits)
+        return json_response(await run_in_threadpool(field_on_grid, job, xs, ys))
 
     async def rollout(request: Request) -> Response:
         job = job_of(request, saved=True)
-        body = await _json_body(request, limits)
+        body = await read_json(request, limits)
         if "start" not in body:
             raise RequestError(400, "'start' must be [x, y]")
         start = parse_target(body["start"], limits, name="start")
-        phase = _phase(body.get("phase"), job, limits)
-        pushes = _pushes(body.get("pushes"), limits)
+        phase = parse_phase(body.get("phase"), job, limits)
+        pushes = parse_pushes(body.get("pushes"), limits)
         result = job.extra["result"]
-        dt = _positive(body.get("dt", result["dt"]), "dt", 1e3)
-        duration = _positive(body.get("duration", 10 * result["duration"]), "duration", 1e6)
+        dt = parse_positive(body.get("dt", result["dt"]), "dt", 1e3)
+        duration = parse_positive(body.get("duration", 10 * result["duration"]), "duration", 1e6)
         answer = await run_in_threadpool(
             rollout_from,
             job,
@@ -645,12 +260,12 @@ def create_app(
             dt=dt,
             max_steps=limits.max_rollout_steps,
         )
-        return _json(answer)
+        return json_response(answer)
 
     async def model_zip(request: Request) -> Response:
         job = job_of(request, done=True)
         name = f"snds-{job.method}-{job.id[:8]}"
-        data = await run_in_threadpool(_zip_model, job.model, name)
+        data = await run_in_threadpool(zip_model, job.model, name)
         return Response(
             data,
             media_type="application/zip",
@@ -662,7 +277,7 @@ def create_app(
         path = job.folder / "export" / "policy.onnx"
 
         def export() -> None:
-            _export_onnx(job, path)
+            write_onnx(job, path)
 
         async with export_lock:
             if not path.is_file():
@@ -685,7 +300,7 @@ def create_app(
         return FileResponse(job.model / STROKES_FILE, media_type="text/csv", filename=STROKES_FILE)
 
     async def strokes_csv(request: Request) -> Response:
-        strokes = parse_strokes(await _json_body(request, limits), limits)
+        strokes = parse_strokes(await read_json(request, limits), limits)
         return Response(
             csv_text(strokes),
             media_type="text/csv",
@@ -693,25 +308,27 @@ def create_app(
         )
 
     async def upload(request: Request) -> Response:
-        raw = await _body(request, limits, media="text/csv")
+        raw = await read_body(request, limits, media="text/csv")
         strokes = await run_in_threadpool(strokes_from_csv, raw, limits)
-        return _json(strokes.to_dict())
+        return json_response(strokes.to_dict())
 
     async def refused(request: Request, error: Exception) -> Response:
         assert isinstance(error, RequestError)
-        return _json({"error": error.reason}, status=error.status)
+        return json_response({"error": error.reason}, status=error.status)
 
     async def http_error(request: Request, error: Exception) -> Response:
         assert isinstance(error, HTTPException)
         reason = {404: f"not found: {request.url.path}", 405: "method not allowed"}
-        return _json({"error": reason.get(error.status_code, str(error.detail))}, error.status_code)
+        return json_response(
+            {"error": reason.get(error.status_code, str(error.detail))}, error.status_code
+        )
 
     @contextlib.asynccontextmanager
     async def lifespan(app: Starlette) -> AsyncIterator[None]:
         runs = Path(tempfile.mkdtemp(prefix="snds-app-", dir=runs_parent))
-        jobs = Jobs(runs, kept=limits.kept_jobs, on_saved=_load_results)
+        jobs = Jobs(runs, kept=limits.kept_jobs, on_saved=load_results)
         jobs.warm_up()
-        threading.Thread(target=_warm_up, name="snds-app-warm-up", daemon=True).start()
+        threading.Thread(target=warm_up_policy, name="snds-app-warm-up", daemon=True).start()
         app.state.runs, app.state.jobs = runs, jobs
         try:
             yield

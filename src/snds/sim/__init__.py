@@ -5,8 +5,12 @@ Needs the ``sim`` extra (``pip install 'snds[sim]'``); the Kinova Jaco2 also nee
 :mod:`snds.sim.plots` draws it.
 """
 
-from snds.sim.robots import ROBOTS, Robot, SimulationError, get_robot
-from snds.sim.run import Placement, PosePlacement, Push, SimConfig, SimResult, simulate
+from snds.errors import SimulationError
+from snds.sim.config import Push, SimConfig
+from snds.sim.placement import Placement, PosePlacement
+from snds.sim.result import SimResult
+from snds.sim.robots import ROBOTS, Robot, get_robot
+from snds.sim.run import simulate
 
 __all__ = [
     "ROBOTS",

@@ -21,7 +21,10 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from snds.sim.robots import Robot, SimulationError
+from snds.errors import SimulationError
+from snds.sim.robots import Robot
+
+__all__ = ["Arm", "EndEffector", "joint_velocity", "orientation_error"]
 
 
 def joint_velocity(

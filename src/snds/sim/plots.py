@@ -29,8 +29,11 @@ from snds.plotting.draw import (
     save_figure,
 )
 from snds.sim.arm import Arm
+from snds.sim.placement import world_shapes
+from snds.sim.result import SimResult
 from snds.sim.robots import get_robot
-from snds.sim.run import SimResult, world_shapes
+
+__all__ = ["frame_steps", "plot_frames", "plot_path", "render_frames"]
 
 GREY = (0.55, 0.55, 0.55, 1.0)
 ORANGE = (0.85, 0.28, 0.06, 1.0)

@@ -15,6 +15,8 @@ from pathlib import Path
 
 from snds.errors import SimulationError
 
+__all__ = ["ROBOTS", "Robot", "get_robot"]
+
 
 @dataclass(frozen=True, kw_only=True)
 class Robot:
