@@ -135,6 +135,25 @@ def test_sweep_keeps_each_run_model_loadable_with_its_numbers(cli_run):
     assert mse == pytest.approx(row["velocity_mse"], rel=1e-9)
 
 
+@pytest.mark.parametrize(("method", "flags"), [("snds", []), ("bc", ["--unconstrained"])])
+def test_a_sweep_trains_what_snds_train_trains(local_sweep, tmp_path, method, flags):
+    # GIVEN the sweep's Line run of a network method (30 steps, seed 0, no phase)
+    out, _, _ = local_sweep
+    task = Task("Line", method, 0, None)
+    # WHEN `snds train` trains the same data, steps and seed (a smaller check: it is not kept)
+    args = ["--motion", "Line", "--steps", "30", "--phase-codes", "0", *flags]
+    args += ["--rollouts", "5", "--samples", "100", "--out", str(tmp_path)]
+    assert main(["--quiet", "train", *args]) == 0
+    # THEN both went through the one run API: the same weights, bit for bit, and settings
+    swept = out / task.model_dir
+    assert (swept / "model.safetensors").read_bytes() == (
+        tmp_path / "model.safetensors"
+    ).read_bytes()
+    ours, theirs = (json.loads((d / "model.json").read_text()) for d in (swept, tmp_path))
+    assert ours["train"] == theirs["train"] and ours["split"] == theirs["split"]
+    assert ours["policy"] == theirs["policy"] and ours["weights_sha256"] == theirs["weights_sha256"]
+
+
 def test_cli_records_the_stability_check_size(tmp_path, monkeypatch):
     seen = []
 
