@@ -123,7 +123,7 @@ def make_policy(
 @dataclass(frozen=True)
 class NeuralMethod:
     """A network policy (:func:`make_policy`: positions or poses) trained by
-    :func:`snds.train.fit` with the recipe of its state space (:func:`snds.recipes.recipe_for`):
+    :func:`snds.train.fit` with the recipe of its state space (:meth:`recipe`):
     :data:`SNDS` and :data:`BC`.
 
     Attributes:
