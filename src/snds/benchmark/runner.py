@@ -27,10 +27,10 @@ from snds.run import SplitConfig, split_of, train_run
 from snds.runs import RunFolder
 from snds.stability import CheckConfig
 
-__all__ = ["SPLIT", "PeakMemory", "TaskOutput", "run_batch", "run_task"]
+__all__ = ["SPLIT", "TaskOutput", "run_batch", "run_task"]
 
 
-class PeakMemory:
+class _PeakMemory:
     """Peak resident memory of this process during a block, in MiB.
 
     On Linux the kernel's high-water mark (``VmHWM``) is reset at the start (writing 5 to
@@ -40,7 +40,7 @@ class PeakMemory:
     slows training several times and misses torch's native allocations.
     """
 
-    def __enter__(self) -> PeakMemory:
+    def __enter__(self) -> _PeakMemory:
         self.resettable = False
         try:
             Path("/proc/self/clear_refs").write_text("5")
@@ -119,7 +119,7 @@ def run_task(task: Task, settings: SweepSettings) -> TaskOutput:
     methods through their :meth:`~snds.methods.Method.fit`.
 
     ``peak_memory_mb`` is the process's peak resident memory during the task (see
-    :class:`PeakMemory`), the Python interpreter and torch included. ``train_seconds`` is the
+    :class:`_PeakMemory`), the Python interpreter and torch included. ``train_seconds`` is the
     fit's wall time, ``train_cpu_seconds`` the CPU time of this process during the fit (all
     its threads; for SNDS and BC it counts the loading of the data too, a few milliseconds):
     on a machine shared with other work the wall time grows, the CPU time hardly does.
@@ -133,7 +133,7 @@ def run_task(task: Task, settings: SweepSettings) -> TaskOutput:
     """
     method = get_method(task.method)
     # One thread per run: the networks are small, and runs side by side fill the cores.
-    with torch_threads(1), PeakMemory() as memory:
+    with torch_threads(1), _PeakMemory() as memory:
         if isinstance(method, NeuralMethod):
             trained = _train_run(task, method, settings)
         else:
@@ -205,7 +205,7 @@ def run_batch(tasks: Sequence[Task], settings: SweepSettings) -> list[TaskOutput
     method = get_method(tasks[0].method)
     if any(task.method != method.name for task in tasks):
         raise SNDSError(f"a batch runs one method, got {sorted({t.method for t in tasks})}")
-    with torch_threads(1), PeakMemory() as memory:
+    with torch_threads(1), _PeakMemory() as memory:
         data = []
         for task in tasks:
             demos = task.source().load()
