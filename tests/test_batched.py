@@ -23,7 +23,7 @@ from snds import batched
 from snds import train as train_module
 from snds.batched import fit_many
 from snds.data import split_samples
-from snds.errors import ConfigError
+from snds.errors import ConfigError, SNDSError
 from snds.train import TrainConfig, fit
 
 from conftest import SMALL, make_policy, spiral_demos
@@ -167,6 +167,7 @@ def test_benchmark_fits_seeds_together_into_the_usual_run_folders(tmp_path, monk
     import importlib
 
     from snds import benchmark
+    from snds.benchmark import sweep
     from snds.models import load_model
 
     # The module (import_module: no attribute lookup on the package).
@@ -184,7 +185,7 @@ def test_benchmark_fits_seeds_together_into_the_usual_run_folders(tmp_path, monk
     def alone(task, settings):
         pytest.fail("a seed was fitted alone")
 
-    monkeypatch.setattr(benchmark, "run_task", alone)
+    monkeypatch.setattr(sweep, "run_task", alone)
     rows = benchmark.run_sweep(tasks, out=tmp_path, settings=settings, jobs=1, progress=False)
     # THEN both runs are stored where a sweep of separate fits puts them, with their record
     assert [(r["seed"], r["decrease_violations"]) for r in rows] == [(0, 0), (1, 0)]
@@ -194,5 +195,5 @@ def test_benchmark_fits_seeds_together_into_the_usual_run_folders(tmp_path, monk
     assert '"batch_fits": 2' in (tmp_path / benchmark.SETTINGS_FILE).read_text()
     # AND a rerun finds them done; one of other settings is refused
     assert benchmark.run_sweep(tasks, out=tmp_path, settings=settings, jobs=1, progress=False)
-    with pytest.raises(benchmark.SNDSError, match="another --out"):
+    with pytest.raises(SNDSError, match="another --out"):
         benchmark.run_sweep(tasks, out=tmp_path, settings=replace(settings, batch_fits=1))

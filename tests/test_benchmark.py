@@ -16,7 +16,7 @@ import sys
 import pytest
 
 from snds import benchmark, stability
-from snds.benchmark import MOTION_GROUPS, Task, resolve_methods, resolve_motions, run_sweep
+from snds.benchmark import MOTION_GROUPS, Task, resolve_methods, resolve_motions, run_sweep, sweep
 from snds.cli import main
 from snds.data import LASA_NAMES
 from snds.errors import DataError, SNDSError
@@ -90,14 +90,14 @@ def local_sweep(cli_run, tmp_path_factory):
     out = tmp_path_factory.mktemp("sweep") / "local"
     shutil.copytree(cli_run, out)
     calls = []
-    original = benchmark.run_task
+    original = sweep.run_task
 
     def counting(task, settings):
         calls.append(task.key)
         return original(task, settings)
 
     with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(benchmark, "run_task", counting)
+        patch.setattr(sweep, "run_task", counting)
         rows = run_sweep(TASKS, out=out, jobs=1, **TINY)
     return out, rows, calls
 
@@ -135,6 +135,25 @@ def test_sweep_keeps_each_run_model_loadable_with_its_numbers(cli_run):
     assert mse == pytest.approx(row["velocity_mse"], rel=1e-9)
 
 
+@pytest.mark.parametrize(("method", "flags"), [("snds", []), ("bc", ["--unconstrained"])])
+def test_a_sweep_trains_what_snds_train_trains(local_sweep, tmp_path, method, flags):
+    # GIVEN the sweep's Line run of a network method (30 steps, seed 0, no phase)
+    out, _, _ = local_sweep
+    task = Task("Line", method, 0, None)
+    # WHEN `snds train` trains the same data, steps and seed (a smaller check: it is not kept)
+    args = ["--motion", "Line", "--steps", "30", "--phase-codes", "0", *flags]
+    args += ["--rollouts", "5", "--samples", "100", "--out", str(tmp_path)]
+    assert main(["--quiet", "train", *args]) == 0
+    # THEN both went through the one run API: the same weights, bit for bit, and settings
+    swept = out / task.model_dir
+    assert (swept / "model.safetensors").read_bytes() == (
+        tmp_path / "model.safetensors"
+    ).read_bytes()
+    ours, theirs = (json.loads((d / "model.json").read_text()) for d in (swept, tmp_path))
+    assert ours["train"] == theirs["train"] and ours["split"] == theirs["split"]
+    assert ours["policy"] == theirs["policy"] and ours["weights_sha256"] == theirs["weights_sha256"]
+
+
 def test_cli_records_the_stability_check_size(tmp_path, monkeypatch):
     seen = []
 
@@ -142,7 +161,7 @@ def test_cli_records_the_stability_check_size(tmp_path, monkeypatch):
         seen.append(settings)
         raise SNDSError("stop here")
 
-    monkeypatch.setattr(benchmark, "run_task", fake)
+    monkeypatch.setattr(sweep, "run_task", fake)
     args = ["--motions", "Line", "--methods", "snds", "--seeds", "1", "--jobs", "1"]
     code = main(["--quiet", "benchmark", *args, "--rollouts", "7", "--out", str(tmp_path)])
     assert code == 2
@@ -174,7 +193,7 @@ def test_rerun_skips_finished_rows(local_sweep, monkeypatch):
     out, rows, _ = local_sweep
     before = (out / "results.jsonl").read_bytes()
     calls = []
-    monkeypatch.setattr(benchmark, "run_task", lambda task, settings: calls.append(task))
+    monkeypatch.setattr(sweep, "run_task", lambda task, settings: calls.append(task))
     again = run_sweep(TASKS, out=out, jobs=1, **TINY)
     assert calls == []
     assert (out / "results.jsonl").read_bytes() == before
@@ -195,7 +214,7 @@ def test_torn_last_line_is_dropped_and_rerun(local_sweep, tmp_path, monkeypatch)
         calls.append(task.key)
         return benchmark.TaskOutput(row=redo[task.method], model={"model.json": b"{}"})
 
-    monkeypatch.setattr(benchmark, "run_task", fake)
+    monkeypatch.setattr(sweep, "run_task", fake)
     again = run_sweep(TASKS, out=tmp_path / "torn", jobs=1, **TINY)
     assert len(calls) == 1 and again == rows
     assert [json.loads(line) for line in results.read_text().splitlines()] == [
@@ -206,7 +225,7 @@ def test_torn_last_line_is_dropped_and_rerun(local_sweep, tmp_path, monkeypatch)
 
 def test_other_settings_in_the_same_folder_are_refused(local_sweep, monkeypatch):
     out, _, _ = local_sweep
-    monkeypatch.setattr(benchmark, "run_task", lambda task, settings: pytest.fail("ran"))
+    monkeypatch.setattr(sweep, "run_task", lambda task, settings: pytest.fail("ran"))
     with pytest.raises(SNDSError, match="another --out"):
         run_sweep(TASKS, out=out, jobs=1, settings=benchmark.SweepSettings.quick(steps=31))
 
@@ -239,7 +258,7 @@ def test_dask_cluster_gives_the_local_numbers(local_sweep, tmp_path):
 def test_scheduler_without_dask_says_how_to_install(tmp_path, monkeypatch):
     # None in sys.modules makes the import fail as if the package were absent.
     monkeypatch.setitem(sys.modules, "dask.distributed", None)
-    monkeypatch.setattr(benchmark, "run_task", lambda task, settings: pytest.fail("ran"))
+    monkeypatch.setattr(sweep, "run_task", lambda task, settings: pytest.fail("ran"))
     with pytest.raises(SNDSError, match=r"pip install snds\[cluster\]"):
         run_sweep(TASKS, out=tmp_path, scheduler="tcp://127.0.0.1:1", **TINY)
 
@@ -384,8 +403,8 @@ def test_pose_task_sweeps_end_to_end_and_resumes(pose_sweep, monkeypatch):
     summary = (pose_sweep / "summary.md").read_text()
     assert "| Line-se3 | snds | 1 |" in summary and "final angle (rad)" in summary
     # AND a rerun trains nothing
-    monkeypatch.setattr(benchmark, "run_task", lambda *a: pytest.fail("retrained"))
-    monkeypatch.setattr(benchmark, "run_batch", lambda *a: pytest.fail("retrained"))
+    monkeypatch.setattr(sweep, "run_task", lambda *a: pytest.fail("retrained"))
+    monkeypatch.setattr(sweep, "run_batch", lambda *a: pytest.fail("retrained"))
     settings = benchmark.SweepSettings(steps=30, rollouts=20, samples=2000)
     assert run_sweep([task], out=pose_sweep, jobs=1, settings=settings, progress=False) == [row]
 

@@ -34,7 +34,7 @@ from snds.data.poses import PoseDemonstrations
 from snds.errors import SNDSError
 from snds.fitting import Fitted, train_network, training_record
 from snds.policy import Policy, PolicyConfig, StablePolicy
-from snds.recipes import recipe_for
+from snds.recipes import RECIPES, SPACE_RECIPES, Recipe
 from snds.se3 import PosePolicy, make_pose_policy
 from snds.spaces import SE3, Euclidean, Phased, Space
 from snds.train import TrainConfig
@@ -123,7 +123,7 @@ def make_policy(
 @dataclass(frozen=True)
 class NeuralMethod:
     """A network policy (:func:`make_policy`: positions or poses) trained by
-    :func:`snds.train.fit` with the recipe of its state space (:func:`snds.recipes.recipe_for`):
+    :func:`snds.train.fit` with the recipe of its state space (:meth:`recipe`):
     :data:`SNDS` and :data:`BC`.
 
     Attributes:
@@ -182,13 +182,22 @@ class NeuralMethod:
             for policy, config, result in zip(policies, configs, results)
         ]
 
+    def recipe(self, space: type[Space], *, steps: int | None = None) -> Recipe:
+        """What its fits in ``space`` build and train, as a recipe for
+        :func:`snds.run.train_run`: the architecture :attr:`policy_config` and the training
+        settings of the space's recipe (:data:`snds.recipes.SPACE_RECIPES`), with ``steps``
+        optimiser steps if given; no phase of its own (the data carry theirs)."""
+        train = RECIPES[SPACE_RECIPES[space]].train
+        if steps is not None:
+            train = replace(train, steps=steps)
+        return Recipe(policy=self.policy_config, train=train, phase=None)
+
     def _setup(
         self, demos: Demonstrations, seed: int, steps: int | None
     ) -> tuple[StablePolicy, TrainConfig]:
         """The untrained policy and the training settings of a fit."""
         policy = make_policy(demos, config=self.policy_config, seed=seed)
-        base = recipe_for(policy.space).train
-        config = replace(base, seed=seed, steps=base.steps if steps is None else steps)
+        config = replace(self.recipe(type(policy.space), steps=steps).train, seed=seed)
         return policy, config
 
 
