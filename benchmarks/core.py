@@ -1,10 +1,10 @@
 """Core benchmark: the default SNDS configuration on the paper's 8 LASA motions.
 
-Trains every (motion, seed) with all 7 demonstrations and a random 0.8 / 0.2 split of the
-samples, evaluates on the test samples, and checks stability with the library's default
-check (random starts from a box 3x the extent, decrease-condition samples in a box 10x the
-extent), then times the pictures ``snds train --plot`` writes (``snds.plotting.plot_all``,
-into a temporary folder). Each run has one torch thread; ``--jobs`` runs run side by side in worker
+Runs every (motion, seed) as ``snds train --phase-codes 0 --plot`` does
+(:func:`snds.run.train_run` into a temporary folder): all 7 demonstrations, a random 0.8 / 0.2
+split of the samples, the evaluation on the test samples with the library's default check
+(random starts from a box 3x the extent, decrease-condition samples in a box 10x the extent)
+and the plots, each part timed from the run's callbacks. Each run has one torch thread; ``--jobs`` runs run side by side in worker
 processes (default: all cores; ``--jobs 1`` runs them one after the other in this process).
 
     python benchmarks/core.py --jobs 1              # 8 motions x 3 seeds, table into README
@@ -37,6 +37,7 @@ from _runner import (
 )
 
 from snds.benchmark import MOTION_GROUPS, PAPER_SNDS_MSE
+from snds.callbacks import Callback
 from snds.parallel import starmap_unordered
 
 PAPER8 = MOTION_GROUPS["paper8"]
@@ -55,53 +56,70 @@ DTW_BEFORE = {
 }
 
 
+class _Clock(Callback):
+    """Wall and CPU time at a run's marks: start, model saved, metrics written, return."""
+
+    def __init__(self) -> None:
+        self.marks = [(time.perf_counter(), time.process_time())]
+
+    def mark(self, *_: object) -> None:
+        self.marks.append((time.perf_counter(), time.process_time()))
+
+    on_saved = on_evaluated = mark
+
+    def parts(self) -> list[tuple[float, float]]:
+        """(wall, CPU) seconds of each part: training, the check, the plots."""
+        return [(b[0] - a[0], b[1] - a[1]) for a, b in zip(self.marks, self.marks[1:])]
+
+
 def run_one(
     motion: str, seed: int, overrides: dict[str, object], quick: bool, threads: int = 1
 ) -> dict:
-    """Trains and evaluates one (motion, seed) in this process; returns one result row."""
+    """Trains and evaluates one (motion, seed) in this process through the run API (as
+    ``snds train --motion M --seed S --phase-codes 0 --plot``); returns one result row."""
     import torch
 
     torch.set_num_threads(threads)
-    from snds.data import Normalization, load_lasa, split_samples
-    from snds.evaluate import evaluate
-    from snds.plotting import plot_all
-    from snds.policy import PolicyConfig, StablePolicy, float64_copy
+    from snds import DataSource, SplitConfig, train_run
+    from snds.policy import PolicyConfig
+    from snds.recipes import Recipe
     from snds.stability import CheckConfig
-    from snds.train import TrainConfig, fit
+    from snds.train import TrainConfig
 
     policy_overrides, train_overrides = split_overrides(overrides)
-    policy_config = PolicyConfig(**policy_overrides)
-    train_config = TrainConfig(seed=seed, **train_overrides)
-    demos = load_lasa(motion)
-    split = split_samples(demos, test_fraction=0.2, seed=seed)
-    policy = StablePolicy(
-        dim=demos.dim, normalization=Normalization.fit(demos), config=policy_config, seed=seed
+    # The paper's policy x' = f(x), no phase: as snds benchmark compares it with the baselines.
+    recipe = Recipe(
+        policy=PolicyConfig(**policy_overrides), train=TrainConfig(**train_overrides), phase=None
     )
-    cpu = time.process_time()
-    result = fit(policy, demos, split, train_config, progress=False)
-    train_cpu = time.process_time() - cpu
-    wall, cpu = time.perf_counter(), time.process_time()
     sizes = {"rollouts": 200, "samples": 10_000} if quick else {}
-    metrics = evaluate(policy, demos, split, check=CheckConfig(seed=seed, **sizes)).to_dict()
-    check_seconds, check_cpu = time.perf_counter() - wall, time.process_time() - cpu
-    # The pictures snds train --plot writes, timed as the second half of issue 18's bar on
-    # what a run spends after training (the check plus the plots).
-    wall, cpu = time.perf_counter(), time.process_time()
+    clock = _Clock()
     with tempfile.TemporaryDirectory() as folder:
-        plot_all(float64_copy(policy).eval(), demos, folder, history=result.history)
-    plot_seconds, plot_cpu = time.perf_counter() - wall, time.process_time() - cpu
+        run = train_run(
+            DataSource(motion=motion),
+            folder,
+            recipe=recipe,
+            seed=seed,
+            split=SplitConfig(test_fraction=0.2),
+            check=CheckConfig(seed=seed, **sizes),
+            plots=True,
+            callbacks=[clock],
+            threads=threads,
+        )
+        clock.mark()
+    (_, train_cpu), (check_seconds, check_cpu), (plot_seconds, plot_cpu) = clock.parts()
+    metrics = run.metrics.to_dict()
     stability = metrics.pop("stability")
     return {
         "motion": motion,
         "seed": seed,
-        "train_seconds": round(result.seconds, 2),
+        "train_seconds": round(run.result.seconds, 2),
         "train_cpu_seconds": round(train_cpu, 2),
         "check_seconds": round(check_seconds, 2),
         "check_cpu_seconds": round(check_cpu, 2),
         "plot_seconds": round(plot_seconds, 2),
         "plot_cpu_seconds": round(plot_cpu, 2),
-        "steps": result.steps,
-        "restarts": result.restarts,
+        "steps": run.result.steps,
+        "restarts": run.result.restarts,
         **{k: v for k, v in metrics.items() if isinstance(v, float)},
         "converged_fraction": stability["converged_fraction"],
         "rollouts": stability["rollouts"],
