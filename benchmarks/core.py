@@ -4,8 +4,9 @@ Runs every (motion, seed) as ``snds train --phase-codes 0 --plot`` does
 (:func:`snds.run.train_run` into a temporary folder): all 7 demonstrations, a random 0.8 / 0.2
 split of the samples, the evaluation on the test samples with the library's default check
 (random starts from a box 3x the extent, decrease-condition samples in a box 10x the extent)
-and the plots, each part timed from the run's callbacks. Each run has one torch thread; ``--jobs`` runs run side by side in worker
-processes (default: all cores; ``--jobs 1`` runs them one after the other in this process).
+and the plots, each part timed from the run's callbacks. Each run has one torch thread;
+``--jobs`` runs run side by side in worker processes (default: all cores; ``--jobs 1`` runs
+them one after the other in this process).
 
     python benchmarks/core.py --jobs 1              # 8 motions x 3 seeds, table into README
     python benchmarks/core.py --motions Sine --seeds 1 --quick --set window=0 --tag no-window

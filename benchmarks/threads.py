@@ -21,7 +21,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import resource
 import subprocess
 import sys
@@ -30,22 +29,13 @@ import time
 from pathlib import Path
 
 import torch
+from _runner import cpu_name
 
 import snds
 from snds.parallel import torch_threads
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
-
-
-def _cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor()
 
 
 def _timed(work) -> dict:
@@ -137,7 +127,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=HERE / "results" / "threads.json")
     args = parser.parse_args()
     record = {
-        "cpu": _cpu_model(),
+        "cpu": cpu_name(),
         "cores": os.cpu_count(),
         "torch": torch.__version__,
         "default_threads": torch.get_num_threads(),

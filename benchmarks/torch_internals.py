@@ -33,6 +33,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import torch
+from _runner import cpu_name
 
 from snds.data import Normalization, load_lasa, split_samples
 from snds.nn.fused import SinCos
@@ -70,16 +71,6 @@ def _per_call(call, angles: torch.Tensor, calls: int) -> tuple[float, float]:
         (time.perf_counter() - wall) / calls * 1e6,
         (time.process_time() - cpu) / calls * 1e6,
     )
-
-
-def _cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def main() -> None:
@@ -146,7 +137,7 @@ def main() -> None:
     share = calls_per_step * saved_us / (step_ms * 1e3)
 
     result = {
-        "machine": f"{platform.machine()}, {_cpu_model()}, {torch.get_num_threads()} thread "
+        "machine": f"{platform.machine()}, {cpu_name()}, {torch.get_num_threads()} thread "
         "(2 cores shared with other work: wall times grow, CPU times less)",
         "torch": torch.__version__,
         "motion": args.motion,
