@@ -154,7 +154,7 @@ def test_bag_trains_end_to_end_and_the_model_rebuilds_its_data(tmp_path):
     out = tmp_path / "model"
     # WHEN snds trains on it with the topic named
     argv = ["--quiet", "train", "--data", str(mcap), "--topic", "/ee_pose", "--out", str(out)]
-    assert main([*argv, "--steps", "5", "--rollouts", "5", "--samples", "50"]) == 0
+    assert main([*argv, "--steps", "100", "--rollouts", "5", "--samples", "50"]) == 0
     # THEN the model is a pose model whose record names the topic, and rebuilds the data
     record = json.loads((out / "model.json").read_text())["data"]
     assert record["topic"] == "/ee_pose"
