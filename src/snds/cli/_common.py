@@ -12,7 +12,6 @@ from snds.data import (
     MAX_END_SPREAD,
     DataSource,
     Demonstrations,
-    Split,
 )
 from snds.data.options import ReadOptions
 from snds.errors import ConfigError, ModelFileError, SNDSError
@@ -21,7 +20,6 @@ from snds.obstacles import Scene, load_scene, parse_obstacle, parse_workspace
 from snds.phase import Phase, StartRule, start_rule
 from snds.plotting import plot_all, plot_obstacles
 from snds.policy import Policy, StablePolicy
-from snds.run import split_of
 from snds.spaces import SE3
 from snds.stability import CheckConfig
 
@@ -29,7 +27,6 @@ __all__ = [
     "READING_FIELDS",
     "check_config",
     "data_source",
-    "make_split",
     "model_and_data",
     "refuse_obstacles",
     "scene_of",
@@ -74,11 +71,6 @@ def data_source(
         **({"gaps": args.gaps} if args.gaps else {}),
         **{name: value for name, value in given.items() if value is not None},
     )
-
-
-def make_split(demos: Demonstrations, record: dict) -> Split:
-    """The split described by a ``split`` record of model.json (:func:`snds.run.split_of`)."""
-    return split_of(demos, record)
 
 
 def _check_sizes(args: argparse.Namespace) -> None:

@@ -8,7 +8,6 @@ from pathlib import Path
 from snds.cli._args import check_arguments, data_arguments, obstacle_arguments
 from snds.cli._common import (
     check_config,
-    make_split,
     model_and_data,
     refuse_obstacles,
     scene_of,
@@ -19,6 +18,7 @@ from snds.evaluate import evaluate
 from snds.io import to_jsonable, write_json
 from snds.obstacles import check_obstacles
 from snds.policy import Policy
+from snds.run import split_of
 from snds.runs import RunFolder
 
 __all__ = ["register", "run"]
@@ -42,7 +42,7 @@ def run(args: argparse.Namespace) -> int:
     if scene is not None:
         refuse_obstacles(policy, "evaluate")
         return _evaluate_obstacles(args, policy, demos, scene)
-    split = make_split(demos, description.get("split", {}))
+    split = split_of(demos, description.get("split", {}))
     metrics = evaluate(policy, demos, split, check=check).to_dict()
     metrics["train_seconds"] = description.get("train_result", {}).get("seconds")
     RunFolder(args.model).write_metrics(metrics)
