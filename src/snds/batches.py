@@ -24,6 +24,7 @@ __all__ = [
     "across",
     "corrected_batch",
     "draw_step",
+    "tracked_batch",
     "uniform_states",
     "warp_draws",
     "warp_of",
@@ -79,6 +80,8 @@ def draw_step(
         x = x + config.position_noise * torch.randn(x.shape, generator=generator).to(x)
     if config.noise_correction and config.correction_share:
         x, v = corrected_batch(x, v, samples, config, generator)
+    if config.tracking_gain and config.tracking_share and samples.tracked:
+        x, v = tracked_batch(x, v, samples.tracked, config, generator)
     inputs = StepInputs(positions=x, velocities=v)
     if config.window and len(samples.window_starts):
         index = _indices(
@@ -124,6 +127,23 @@ def corrected_batch(
     x, v = x.clone(), v.clone()
     x[chosen], v[chosen] = moved, target
     return x, v
+
+
+def tracked_batch(
+    x: torch.Tensor,
+    v: torch.Tensor,
+    tracked: int,
+    config: TrainConfig,
+    generator: torch.Generator,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    r"""A batch (B, n) with a share of its states moved in their first ``tracked``
+    coordinates (the positions; the phase kept) and trained back towards where they were:
+    :math:`(x + \delta, v - k \delta)` (see ``TrainConfig.tracking_gain``)."""
+    chosen = torch.rand(len(x), generator=generator).to(x.device) < config.tracking_share
+    offsets = config.tracking_noise * torch.randn(x.shape, generator=generator).to(x)
+    offsets[:, tracked:] = 0.0
+    offsets[~chosen] = 0.0
+    return x + offsets, v - config.tracking_gain * offsets
 
 
 def across(offset: torch.Tensor, velocity: torch.Tensor) -> torch.Tensor:

@@ -90,8 +90,9 @@ def fit_identity(policy: Policy, config: Any, samples: Samples) -> dict:
     """What must be the same for a checkpoint to continue a fit: settings (``config``, a
     :class:`~snds.train.TrainConfig`), model, data."""
     digest = hashlib.sha256()
-    for tensor in vars(samples).values():
+    for tensor in samples.tensors().values():
         digest.update(tensor.detach().cpu().contiguous().numpy().tobytes())
+    digest.update(str(samples.tracked).encode())
     identity = {
         "train": config.to_dict(),
         "kind": policy.kind,

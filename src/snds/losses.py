@@ -53,6 +53,8 @@ class Samples:
         window_starts: States x_s that start a window of training samples, shape (M, n).
         window_targets: The demonstrated x_{s+1}, ..., x_{s+Nw}, shape (M, Nw, n).
         window_steps: The demonstration's own time steps, shape (M, Nw).
+        tracked: The leading state coordinates that tracking moves (``TrainConfig.
+            tracking_gain``): the positions where a phase is in the state, 0 without one.
     """
 
     positions: Tensor
@@ -60,6 +62,7 @@ class Samples:
     window_starts: Tensor
     window_targets: Tensor
     window_steps: Tensor
+    tracked: int = 0
 
     def off_target(self, *, positions: bool = True) -> Samples:
         r"""The same samples without the states at the target (within :data:`AT_TARGET` of
@@ -80,12 +83,21 @@ class Samples:
             window_starts=self.window_starts[keep],
             window_targets=self.window_targets[keep],
             window_steps=self.window_steps[keep],
+            tracked=self.tracked,
         )
 
     def to(self, dtype: torch.dtype, device: torch.device | str = "cpu") -> Samples:
         """The same samples with another dtype / device."""
-        tensors = (getattr(self, field.name) for field in dataclasses.fields(self))
-        return Samples(*(t.to(device=device, dtype=dtype) for t in tensors))
+        moved = {name: t.to(device=device, dtype=dtype) for name, t in self.tensors().items()}
+        return Samples(**moved, tracked=self.tracked)
+
+    def tensors(self) -> dict[str, Tensor]:
+        """The sample tensors by field name (every field but ``tracked``)."""
+        return {
+            field.name: getattr(self, field.name)
+            for field in dataclasses.fields(self)
+            if field.name != "tracked"
+        }
 
     def nearest(self, states: Tensor) -> Tensor:
         """The index of the training sample nearest to each state (B, n), shape (B,).
@@ -219,6 +231,7 @@ def make_samples(
         window_starts=as_tensor(np.concatenate(starts) if starts else np.zeros((0, n))),
         window_targets=as_tensor(np.concatenate(targets) if targets else np.zeros((0, window, n))),
         window_steps=as_tensor(np.concatenate(steps) if steps else np.zeros((0, window))),
+        tracked=demos.position_dim if demos.phase_dim else 0,
     )
 
 

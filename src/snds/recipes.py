@@ -44,13 +44,18 @@ class Recipe:
 #:   that evaluate large batches.
 #: - ``pose``: the former training settings of SE(3) pose models, kept for their models:
 #:   V's shape penalty on (``shape_weight`` 0.01), no noise on the training states
-#:   (``position_noise`` 0), no noise correction, no alignment term (``align_weight`` 0).
+#:   (``position_noise`` 0), no noise correction, no tracking, no alignment term
+#:   (``align_weight`` 0).
 RECIPES: dict[str, Recipe] = {
     "default": Recipe(),
     "compact": Recipe(policy=PolicyConfig(hidden=(64, 64), fourier_features=64)),
     "pose": Recipe(
         train=TrainConfig(
-            shape_weight=0.01, position_noise=0.0, noise_correction=0.0, align_weight=0.0
+            shape_weight=0.01,
+            position_noise=0.0,
+            noise_correction=0.0,
+            tracking_gain=0.0,
+            align_weight=0.0,
         )
     ),
 }

@@ -56,6 +56,17 @@ class TrainConfig:
         correction_noise: The standard deviation of those offsets (model coordinates).
         correction_share: The share of each batch's states that is moved and corrected, in
             [0, 1].
+        tracking_gain: A gain k per unit of model time that pulls a state back to where its
+            demonstration was at the same phase (models with a phase in the state only). A
+            share (``tracking_share``) of each batch's states is moved in position only, the
+            phase kept, by Gaussian offsets :math:`\delta` of standard deviation
+            ``tracking_noise``, and trained towards :math:`v_j - k \delta`, with :math:`v_j`
+            the velocity of the sample the state was moved from. The phase names that sample
+            alone, so the targets never contradict each other, and a rollout pushed off its
+            path returns onto the rest of its demonstration instead of wandering from where it
+            was pushed (0: off).
+        tracking_noise: The standard deviation of those offsets (model coordinates).
+        tracking_share: The share of each batch's states that is moved and tracked, in [0, 1].
         correction_width: sigma > 0: the offset :math:`(\tilde x - x_j)_\perp` is averaged over
             the training samples near the moved state, with Gaussian weights of width sigma
             (model coordinates) and by how well their direction of travel agrees with the
@@ -105,6 +116,9 @@ class TrainConfig:
     correction_noise: float = 0.005
     correction_share: float = 0.1
     correction_width: float = 0.04
+    tracking_gain: float = 3.0
+    tracking_noise: float = 0.05
+    tracking_share: float = 0.2
     shape_weight: float = 0.0
     warp_weight: float = 0.001
     align_weight: float = 0.1
@@ -129,8 +143,10 @@ class TrainConfig:
             raise ConfigError(f"unknown dtype {self.dtype!r}; choose from {list(DTYPES)}")
         if self.penalty_every < 1:
             raise ConfigError(f"penalty_every must be >= 1, got {self.penalty_every}")
-        if not 0.0 <= self.correction_share <= 1.0:
-            raise ConfigError(f"correction_share must be in [0, 1], got {self.correction_share}")
+        for name in ("correction_share", "tracking_share"):
+            share = getattr(self, name)
+            if not 0.0 <= share <= 1.0:
+                raise ConfigError(f"{name} must be in [0, 1], got {share}")
         if not -1.0 <= self.align_cosine <= 1.0:
             raise ConfigError(f"align_cosine must be in [-1, 1], got {self.align_cosine}")
         if self.window < 0 or self.batch_size < 0 or self.window_batch_size < 0:
@@ -144,6 +160,8 @@ class TrainConfig:
             "noise_correction",
             "correction_noise",
             "correction_width",
+            "tracking_gain",
+            "tracking_noise",
             "shape_weight",
             "warp_weight",
             "align_weight",
