@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from snds.cli import main
+from snds.train import TrainConfig
 
 from conftest import SHARED_DATA
 
@@ -340,3 +341,15 @@ def test_plots_roll_out_until_every_rollout_arrives():
     exact = np.ceil(np.log(0.01 / np.linalg.norm(starts, axis=1)) / np.log(1 - 0.002))
     np.testing.assert_array_equal(arrived, exact.astype(int))
     assert rollouts.shape[1] == 600 * int(np.ceil(exact.max() / 600)) + 1
+
+
+def test_train_records_the_tracking_gain_asked_for(tmp_path):
+    out = tmp_path / "untracked"
+    argv = ["--quiet", "train", "--motion", "Sine", "--demos", "2", "--out", str(out)]
+    assert (
+        main([*argv, "--steps", "5", "--rollouts", "5", "--samples", "100", "--tracking-gain", "0"])
+        == 0
+    )
+    description = json.loads((out / "model.json").read_text())
+    assert description["train"]["tracking_gain"] == 0.0
+    assert description["train"]["tracking_share"] == TrainConfig().tracking_share

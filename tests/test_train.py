@@ -7,9 +7,10 @@ import torch
 import snds.batches as batches
 import snds.losses as losses_module
 import snds.train as train_module
-from snds.data import Demonstration, Demonstrations, no_split, split_samples
+from snds.data import Demonstration, Demonstrations, Normalization, no_split, split_samples
 from snds.evaluate import accuracy
 from snds.losses import AT_TARGET, make_samples
+from snds.phase import Phase
 from snds.train import TrainConfig, TrainingError, fit, training_samples
 
 from conftest import SMALL, make_policy, spiral_demos
@@ -488,3 +489,74 @@ def test_a_noiseless_fit_with_samples_a_hair_from_the_target_does_not_diverge():
     # THEN no step diverged (there |grad V|^2 ~ 1e-38 and the projection's derivative overflowed)
     assert result.restarts == 0
     assert all(torch.isfinite(p).all() for p in policy.parameters())
+
+
+def _phased_samples(demos, codes: int = 2):
+    phased = Phase(codes=codes).apply(demos)
+    policy = make_policy(phased, seed=0)
+    samples = train_module.make_samples(phased, policy.normalization, no_split(phased), window=0)
+    return policy, samples.to(torch.float64)
+
+
+def test_tracking_moves_positions_only_and_trains_them_back(spiral):
+    # GIVEN a phase model's full batch, no other noise, tracking half of it
+    policy, samples = _phased_samples(spiral)
+    assert samples.tracked == 2 and samples.positions.shape[-1] == 4
+    config = TrainConfig(
+        batch_size=0,
+        position_noise=0.0,
+        noise_correction=0.0,
+        tracking_gain=3.0,
+        tracking_noise=0.05,
+        tracking_share=0.5,
+    )
+    draw = batches.draw_step(policy, samples, config, torch.Generator().manual_seed(3))
+    moved = (draw.positions != samples.positions).any(-1)
+    # THEN about that share moved, in position only, by about that noise; the phase is kept
+    assert 0.45 < float(moved.double().mean()) < 0.55
+    torch.testing.assert_close(draw.positions[:, 2:], samples.positions[:, 2:], rtol=0, atol=0)
+    offsets = draw.positions - samples.positions
+    assert float(offsets[moved, :2].std()) == pytest.approx(0.05, rel=0.1)
+    # AND each state is trained towards its own sample's velocity minus k times its offset
+    torch.testing.assert_close(draw.velocities, samples.velocities - 3.0 * offsets)
+    torch.testing.assert_close(draw.velocities[:, 2:], samples.velocities[:, 2:], rtol=0, atol=0)
+
+
+def test_tracking_needs_a_phase(spiral):
+    # GIVEN positions alone: nothing names which demonstration a state follows
+    policy = make_policy(spiral, seed=0)
+    samples = train_module.make_samples(spiral, policy.normalization, no_split(spiral), window=0)
+    assert samples.tracked == 0
+    # THEN tracking leaves the batch and the random stream as without it
+    draws = []
+    for gain in (3.0, 0.0):
+        generator = torch.Generator().manual_seed(3)
+        config = TrainConfig(batch_size=64, tracking_gain=gain, tracking_share=1.0)
+        draws.append((batches.draw_step(policy, samples, config, generator, step=1), generator))
+    (on, after_on), (off, after_off) = draws
+    assert torch.equal(on.positions, off.positions) and torch.equal(on.velocities, off.velocities)
+    assert torch.equal(torch.rand(1, generator=after_on), torch.rand(1, generator=after_off))
+
+
+def test_tracking_moves_a_pose_state_less_its_phase():
+    # GIVEN a pose model's training state (position 3, rotation vector 3) and a phase of 2, as
+    # snds.se3.tangent_demonstrations lays it out
+    spiral = spiral_demos(dim=8)
+    phased = Demonstrations(spiral.demos, np.zeros(8), "pose", 2)
+    samples = make_samples(phased, Normalization.fit(phased), no_split(phased), window=0)
+    # THEN tracking moves the position and the rotation, not the phase
+    assert samples.tracked == 6
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [
+        ("tracking_share", 1.5),
+        ("tracking_share", -0.1),
+        ("tracking_gain", -1.0),
+        ("tracking_noise", float("nan")),
+    ],
+)
+def test_tracking_settings_are_checked(field, value):
+    with pytest.raises(train_module.ConfigError, match=field):
+        TrainConfig(**{field: value})

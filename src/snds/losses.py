@@ -54,7 +54,8 @@ class Samples:
         window_targets: The demonstrated x_{s+1}, ..., x_{s+Nw}, shape (M, Nw, n).
         window_steps: The demonstration's own time steps, shape (M, Nw).
         tracked: The leading state coordinates that tracking moves (``TrainConfig.
-            tracking_gain``): the positions where a phase is in the state, 0 without one.
+            tracking_gain``) where a phase is in the state: the state less its phase (the
+            positions, and a pose's rotation with them); 0 without a phase.
     """
 
     positions: Tensor

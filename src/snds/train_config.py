@@ -58,13 +58,13 @@ class TrainConfig:
             [0, 1].
         tracking_gain: A gain k per unit of model time that pulls a state back to where its
             demonstration was at the same phase (models with a phase in the state only). A
-            share (``tracking_share``) of each batch's states is moved in position only, the
-            phase kept, by Gaussian offsets :math:`\delta` of standard deviation
-            ``tracking_noise``, and trained towards :math:`v_j - k \delta`, with :math:`v_j`
-            the velocity of the sample the state was moved from. The phase names that sample
-            alone, so the targets never contradict each other, and a rollout pushed off its
-            path returns onto the rest of its demonstration instead of wandering from where it
-            was pushed (0: off).
+            share (``tracking_share``) of each batch's states is moved in position (and a
+            pose's rotation) only, the phase kept, by Gaussian offsets :math:`\delta` of
+            standard deviation ``tracking_noise``, and trained towards :math:`v_j - k \delta`,
+            with :math:`v_j` the velocity of the sample the state was moved from. The phase
+            names that sample alone, so the targets never contradict each other, and a rollout
+            pushed off its path returns onto the rest of its demonstration instead of wandering
+            from where it was pushed (0: off).
         tracking_noise: The standard deviation of those offsets (model coordinates).
         tracking_share: The share of each batch's states that is moved and tracked, in [0, 1].
         correction_width: sigma > 0: the offset :math:`(\tilde x - x_j)_\perp` is averaged over

@@ -73,6 +73,17 @@ def register(commands: argparse._SubParsersAction) -> None:
         "for SE(3) pose models; 0: off)",
     )
     parser.add_argument(
+        "--tracking-gain",
+        type=float,
+        default=None,
+        help="gain k (per unit of model time) that pulls a state with a phase back to where "
+        f"its demonstration was at that phase: a share ({DEFAULT.train.tracking_share:g}) of "
+        f"each batch is moved in position (noise {DEFAULT.train.tracking_noise:g}), the phase "
+        "kept, and trained towards its sample's velocity minus k times the offset, so that a "
+        f"pushed rollout returns onto its demonstration (default "
+        f"{DEFAULT.train.tracking_gain:g}; only with a phase; 0: off)",
+    )
+    parser.add_argument(
         "--shape-weight",
         type=float,
         default=None,
@@ -196,6 +207,7 @@ def _train_config(args: argparse.Namespace, base: TrainConfig) -> TrainConfig:
         noise_correction=(
             base.noise_correction if args.noise_correction is None else args.noise_correction
         ),
+        tracking_gain=base.tracking_gain if args.tracking_gain is None else args.tracking_gain,
         shape_weight=base.shape_weight if args.shape_weight is None else args.shape_weight,
         warp_weight=args.warp_weight,
         device=args.device,
