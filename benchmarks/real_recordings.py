@@ -283,6 +283,18 @@ def _cell(value) -> str:
     return "-" if value is None else f"{value:.3g}"
 
 
+def _commits(rows: list[dict]) -> str:
+    """Which commit measured which tasks, where the rows come from more than one (--merge)."""
+    tasks: dict[str, list[str]] = {}
+    for row in rows:
+        names = tasks.setdefault(row.get("commit", "?"), [])
+        if row["task"] not in names:
+            names.append(row["task"])
+    if len(tasks) < 2:
+        return ""
+    return " Rows by commit: " + "; ".join(f"{c}: {', '.join(t)}" for c, t in tasks.items()) + "."
+
+
 def table(rows: list[dict], meta: dict) -> str:
     columns = ["frechet", "final", "angle_along", "angle_end", "push", "ratio", "arrived"]
     seeds = max((r["seed"] for r in rows), default=-1) + 1
@@ -292,7 +304,7 @@ def table(rows: list[dict], meta: dict) -> str:
         "over the seeds; bars: Fréchet <= 0.05, final "
         "<= 0.01, angle along <= 0.1 rad, at the end <= 0.05, push <= 0.10 (extents), ratio "
         "<= 2, arrived 1.0, converged 1.0, 0 violations, safe step >= data step, check CPU <= "
-        "fit CPU.",
+        "fit CPU." + _commits(rows),
         "",
         "| task | seeds | " + " | ".join(columns) + " | safe step / data step (on rollouts) "
         "| check / fit CPU "
@@ -345,6 +357,11 @@ def main() -> None:
     options.add_argument("--done-only", action="store_true", help="measure trained runs only")
     options.add_argument("--out", type=Path, default=RESULTS / "real-recordings.json")
     options.add_argument("--shapes", type=Path, metavar="DIR", help="only write the drawn shapes")
+    options.add_argument(
+        "--merge",
+        action="store_true",
+        help="keep the rows of the other tasks from --out (each row records its commit)",
+    )
     args = options.parse_args()
     if args.shapes:
         args.shapes.mkdir(parents=True, exist_ok=True)
@@ -366,7 +383,14 @@ def main() -> None:
                 *([value] * len(work) for value in (args.runs, Path(drawn), args.threads)),
                 [args.done_only] * len(work),
             )
-            rows = [row for row in done if row is not None]
+            rows = [row | {"commit": meta["commit"]} for row in done if row is not None]
+    if args.merge and args.out.is_file():
+        earlier = json.loads(args.out.read_text())
+        commit = earlier["meta"]["commit"]
+        ran = {row["task"] for row in rows}
+        kept = [r for r in earlier["rows"] if r["task"] not in ran]
+        rows = [{"commit": commit} | r for r in kept] + rows
+        rows.sort(key=lambda r: (list(TASKS).index(r["task"]), r["seed"]))
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
     if not args.no_readme:

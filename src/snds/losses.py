@@ -54,8 +54,8 @@ class Samples:
         window_targets: The demonstrated x_{s+1}, ..., x_{s+Nw}, shape (M, Nw, n).
         window_steps: The demonstration's own time steps, shape (M, Nw).
         tracked: The leading state coordinates that tracking moves (``TrainConfig.
-            tracking_gain``) where a phase is in the state: the state less its phase (the
-            positions, and a pose's rotation with them); 0 without a phase.
+            tracking_gain``): the positions where a phase is in the state (not a pose's
+            rotation), 0 without a phase.
     """
 
     positions: Tensor
@@ -191,7 +191,12 @@ PULL_REFERENCES = 1024
 
 
 def make_samples(
-    demos: Demonstrations, normalization: Normalization, split: Split, *, window: int
+    demos: Demonstrations,
+    normalization: Normalization,
+    split: Split,
+    *,
+    window: int,
+    tracked: int = 0,
 ) -> Samples:
     """Collects the training samples and the multi-step windows that lie wholly in training.
 
@@ -203,6 +208,7 @@ def make_samples(
         normalization: Their affine map to model coordinates.
         split: Which samples are for training.
         window: Nw >= 0, the number of Euler steps in a window.
+        tracked: :attr:`Samples.tracked`, the leading state coordinates that tracking moves.
     """
     xs, vs, starts, targets, steps = [], [], [], [], []
     for demo, mask in zip(demos, split.train):
@@ -232,7 +238,7 @@ def make_samples(
         window_starts=as_tensor(np.concatenate(starts) if starts else np.zeros((0, n))),
         window_targets=as_tensor(np.concatenate(targets) if targets else np.zeros((0, window, n))),
         window_steps=as_tensor(np.concatenate(steps) if steps else np.zeros((0, window))),
-        tracked=demos.position_dim if demos.phase_dim else 0,
+        tracked=tracked,
     )
 
 

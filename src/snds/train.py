@@ -81,7 +81,8 @@ def training_samples(
 ) -> Samples:
     """The samples a fit trains on, in model coordinates, in ``config``'s dtype and device:
     those of ``split`` (:func:`snds.losses.make_samples`) without the states exactly at the
-    target that nothing moves off it (:meth:`~snds.losses.Samples.off_target`).
+    target that nothing moves off it (:meth:`~snds.losses.Samples.off_target`); with a phase in
+    the policy's space, tracking moves the positions (``Samples.tracked``).
 
     Arguments:
         demos: The demonstrations in the coordinates the policy's normalisation maps (a pose
@@ -90,7 +91,11 @@ def training_samples(
         split: Which samples train.
         config: The fit's settings.
     """
-    samples = make_samples(demos, policy.normalization, split, window=config.window)
+    space = policy.space
+    tracked = space.position_dim if space.phase_dim else 0
+    samples = make_samples(
+        demos, policy.normalization, split, window=config.window, tracked=tracked
+    )
     samples = samples.off_target(positions=not config.position_noise)
     if len(samples.positions) == 0:
         raise DataError("no training samples away from the target")

@@ -58,8 +58,8 @@ class TrainConfig:
             [0, 1].
         tracking_gain: A gain k per unit of model time that pulls a state back to where its
             demonstration was at the same phase (models with a phase in the state only). A
-            share (``tracking_share``) of each batch's states is moved in position (and a
-            pose's rotation) only, the phase kept, by Gaussian offsets :math:`\delta` of
+            share (``tracking_share``) of each batch's states is moved in position only (a
+            pose's rotation and the phase kept), by Gaussian offsets :math:`\delta` of
             standard deviation ``tracking_noise``, and trained towards :math:`v_j - k \delta`,
             with :math:`v_j` the velocity of the sample the state was moved from. The phase
             names that sample alone, so the targets never contradict each other, and a rollout
