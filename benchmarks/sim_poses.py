@@ -52,29 +52,38 @@ def simulate(run: Path, robot: str) -> dict:
     }
 
 
+def _cell(mine: list[dict]) -> str:
+    worst = max(mine, key=lambda r: (not r["reached"], r["final_mm"]))
+    return (
+        f"{sum(r['reached'] for r in mine)} of {len(mine)} | {worst['final_mm']:.1f} / "
+        f"{worst['final_rad']:.3f} | {max(r['start_mm'] for r in mine):.0f} / "
+        f"{max(r['start_rad'] for r in mine):.2f} | {worst['joint_margin_rad']:.2f} "
+        f"({worst['tightest_joint']})"
+    )
+
+
 def table(rows: list[dict], meta: dict) -> str:
+    head = " | ".join(
+        f"{robot}: reached | final mm / rad | start mm / rad | joint margin rad (joint)"
+        for robot in ROBOTS
+    )
     lines = [
-        f"{machine_line(meta)} `python benchmarks/sim_poses.py` on the runs of "
-        "`real_recordings.py`; default `snds simulate` (30 s, 1 mm and 0.02 rad).",
+        f"{machine_line(meta)} `python benchmarks/sim_poses.py`: default `snds simulate` (30 s, "
+        "1 mm and 0.02 rad) of the pose runs above from their first demonstration's start; the "
+        "worst run.",
         "",
-        "| task | robot | reached | time s | final mm | final rad | start mm | start rad "
-        "| joint margin rad (joint) |",
-        "|---|---|---|---|---|---|---|---|---|",
+        f"| task | {head} |",
+        "|---" * (1 + 4 * len(ROBOTS)) + "|",
     ]
     for task in POSE_TASKS:
-        for robot in ROBOTS:
-            mine = [r for r in rows if r["task"] == task and r["robot"] == robot]
-            if not mine:
-                continue
-            worst = max(mine, key=lambda r: (not r["reached"], r["final_mm"]))
-            lines.append(
-                f"| {task} | {robot} | {sum(r['reached'] for r in mine)} of {len(mine)} "
-                f"| {max(r['seconds'] for r in mine):.1f} | {worst['final_mm']:.2f} "
-                f"| {worst['final_rad']:.3f} | {max(r['start_mm'] for r in mine):.1f} "
-                f"| {max(r['start_rad'] for r in mine):.3f} "
-                f"| {worst['joint_margin_rad']:.3f} ({worst['tightest_joint']}) |"
-            )
+        cells = [_cell(m) for robot in ROBOTS if (m := _of(rows, task, robot))]
+        if cells:
+            lines.append(f"| {task} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
+
+
+def _of(rows: list[dict], task: str, robot: str) -> list[dict]:
+    return [r for r in rows if r["task"] == task and r["robot"] == robot]
 
 
 def main() -> None:
