@@ -4,8 +4,9 @@ For every pose run of ``real_recordings.py`` (``runs/real-recordings/``: the Rob
 pouring and bottle2shelf files and the Panda kinesthetic poses, one run per seed), runs the
 default ``snds simulate RUN --robot ROBOT`` from the first demonstration's first pose on each
 arm and reads its ``sim.json``: whether it reached the target (1 mm and 0.02 rad, the
-defaults), the final errors, the error of the arm's start against the demonstration's start
-(the inverse kinematics from rest), and how close the joints came to their limits.
+defaults) and whether it ended within 1 cm and 0.05 rad, the final errors, the error of the
+arm's start against the demonstration's start (the inverse kinematics from rest), and how
+close the joints came to their limits.
 
     python benchmarks/real_recordings.py --seeds 3 --jobs 2   # trains the runs
     python benchmarks/sim_poses.py                            # then this
@@ -54,8 +55,9 @@ def simulate(run: Path, robot: str) -> dict:
 
 def _cell(mine: list[dict]) -> str:
     worst = max(mine, key=lambda r: (not r["reached"], r["final_mm"]))
+    near = sum(r["final_mm"] <= 10.0 and r["final_rad"] <= 0.05 for r in mine)
     return (
-        f"{sum(r['reached'] for r in mine)} of {len(mine)} | {worst['final_mm']:.1f} / "
+        f"{sum(r['reached'] for r in mine)} / {near} of {len(mine)} | {worst['final_mm']:.1f} / "
         f"{worst['final_rad']:.3f} | {max(r['start_mm'] for r in mine):.0f} / "
         f"{max(r['start_rad'] for r in mine):.2f} | {worst['joint_margin_rad']:.2f} "
         f"({worst['tightest_joint']})"
@@ -64,7 +66,8 @@ def _cell(mine: list[dict]) -> str:
 
 def table(rows: list[dict], meta: dict) -> str:
     head = " | ".join(
-        f"{robot}: reached | final mm / rad | start mm / rad | joint margin rad (joint)"
+        f"{robot}: reached / within 1 cm, 0.05 rad | final mm / rad | start mm / rad "
+        "| joint margin rad (joint)"
         for robot in ROBOTS
     )
     lines = [
