@@ -104,11 +104,11 @@ class PositionCommander:
     def build(
         cls, policy: Policy, robot: Robot, rest_orientation: np.ndarray, config: SimConfig
     ) -> PositionCommander:
-        """The commander of a run on ``robot``, holding the rest orientation."""
-        scale = config.scale if config.scale is not None else default_scale(robot, policy)
-        return cls(
-            policy, Placement.for_task(robot, policy.target, scale), rest_orientation, config
-        )
+        """The commander of a run on ``robot``, holding the rest orientation; the task's
+        target is the position part of the policy's (a phase left out)."""
+        target = policy.space.positions(policy.target)
+        placement = Placement.for_task(robot, target, _scale(robot, policy, config))
+        return cls(policy, placement, rest_orientation, config)
 
     def start_pose(self, start: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The world pose of a start state (n,): its position, the held orientation."""
@@ -184,15 +184,6 @@ class PhasedCommander(PositionCommander):
         self.position_dim = policy.space.position_dim
         self.keeper = PhaseKeeper(position_dim=self.position_dim)
 
-    @classmethod
-    def build(
-        cls, policy: Policy, robot: Robot, rest_orientation: np.ndarray, config: SimConfig
-    ) -> PhasedCommander:
-        """The commander of a run on ``robot``, holding the rest orientation."""
-        scale = config.scale if config.scale is not None else default_scale(robot, policy)
-        target = policy.space.positions(policy.target)
-        return cls(policy, Placement.for_task(robot, target, scale), rest_orientation, config)
-
     def start_pose(self, start: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The world pose of a start state (n + m,): its position, the held orientation; its
         phase starts the commander's."""
@@ -239,12 +230,11 @@ class PoseCommander:
         cls, policy: PosePolicy, robot: Robot, rest_orientation: np.ndarray, config: SimConfig
     ) -> PoseCommander:
         """The commander of a run on ``robot``, the target orientation at the rest one."""
-        scale = config.scale if config.scale is not None else default_scale(robot, policy)
         placement = PosePlacement.for_task(
             robot,
             np.asarray(policy.config.target_position, dtype=float),
             np.asarray(policy.config.target_orientation, dtype=float),
-            scale,
+            _scale(robot, policy, config),
             rest_orientation,
         )
         return cls(policy, placement, config)
@@ -340,6 +330,11 @@ COMMANDERS: dict[type[Space], Any] = {Euclidean: PositionCommander, SE3: PoseCom
 
 #: The commander of each base space with a phase after it (:class:`~snds.spaces.Phased`).
 PHASED_COMMANDERS: dict[type[Space], Any] = {Euclidean: PhasedCommander, SE3: PhasedPoseCommander}
+
+
+def _scale(robot: Robot, policy: Policy, config: SimConfig) -> float:
+    """Metres per user unit: the run's ``scale``, else one that fits the task into the reach."""
+    return config.scale if config.scale is not None else default_scale(robot, policy)
 
 
 def make_commander(
