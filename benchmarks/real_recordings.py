@@ -47,6 +47,7 @@ import tempfile
 import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -375,14 +376,12 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as drawn:
         for name in SHAPES:
             write_csv(name, Path(drawn) / f"{name}.csv")
-        work = [(t, s) for t in args.tasks.split(",") for s in range(args.seeds)]
+        tasks, seeds = zip(*[(t, s) for t in args.tasks.split(",") for s in range(args.seeds)])
+        task_run = partial(
+            one, runs=args.runs, drawn=Path(drawn), threads=args.threads, done_only=args.done_only
+        )
         with ProcessPoolExecutor(args.jobs) as pool:
-            done = pool.map(
-                one,
-                *zip(*work),
-                *([value] * len(work) for value in (args.runs, Path(drawn), args.threads)),
-                [args.done_only] * len(work),
-            )
+            done = pool.map(task_run, tasks, seeds)
             rows = [row | {"commit": meta["commit"]} for row in done if row is not None]
     if args.merge and args.out.is_file():
         earlier = json.loads(args.out.read_text())
