@@ -24,7 +24,10 @@ needs (a rate, a quaternion order, a length unit), one run per seed, then measur
   rest, 0.10 from the demonstration's point: 0.10 is the floor, met by a rollout that never
   goes further from the demonstration than the push took it;
 * ``safe_dt_rollouts``: the largest safe Euler step over the states the check's rollouts
-  visit only (``safe_dt`` adds the 50,000 decrease samples of the 10x box).
+  visit only (``safe_dt`` adds the 50,000 decrease samples of the 10x box);
+* ``rough``: :func:`snds.metrics.field_roughness`, the median angle in degrees between the
+  velocities of neighbouring points of a 101 x 101 grid over the 3x box (the plane of the
+  first two coordinates through the target, at phase 0): ripples off the data.
 
     python benchmarks/real_recordings.py --seeds 3 --jobs 2   # train, measure, write
     python benchmarks/real_recordings.py --seeds 3 --done-only  # measure runs already trained
@@ -34,8 +37,9 @@ The drawn shapes ("e", loop, alpha, phi) are drawn as a person draws on the page
 demonstrations each with its own pace, a small affine jitter and hand tremor (seeded), written
 as ``snds train --data`` CSV files.
 
-Writes runs under ``runs/real-recordings/``, ``benchmarks/results/real-recordings.json`` and
-the ``real-recordings`` table of ``benchmarks/README.md``.
+Writes runs under ``runs/real-recordings/`` (the drawn shapes' CSV files in its ``drawn/``),
+``benchmarks/results/real-recordings.json`` and the ``real-recordings`` table of
+``benchmarks/README.md``.
 """
 
 from __future__ import annotations
@@ -43,7 +47,6 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
-import tempfile
 import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
@@ -63,7 +66,7 @@ from _runner import (
 )
 
 from snds.data import DataSource
-from snds.metrics import frechet
+from snds.metrics import field_roughness, frechet
 from snds.models import load_model
 from snds.phase import start_state
 from snds.policy import float64_copy
@@ -208,6 +211,7 @@ def measure(run: Path, seed: int) -> dict:
         "train_cpu": metrics["train_seconds"],
         "check_cpu": check_cpu,
         "phase_dim": demos.phase_dim,
+        "rough": field_roughness(policy, demos).median,
     }
     return row | new_starts(policy, demos, seed) | {"push": pushed(policy, demos)}
 
@@ -297,7 +301,7 @@ def _commits(rows: list[dict]) -> str:
 
 
 def table(rows: list[dict], meta: dict) -> str:
-    columns = ["frechet", "final", "angle_along", "angle_end", "push", "ratio", "arrived"]
+    columns = ["frechet", "final", "angle_along", "angle_end", "push", "ratio", "arrived", "rough"]
     seeds = max((r["seed"] for r in rows), default=-1) + 1
     lines = [
         f"{machine_line(meta)} `python benchmarks/real_recordings.py --seeds {seeds} "
@@ -305,7 +309,8 @@ def table(rows: list[dict], meta: dict) -> str:
         "over the seeds; bars: Fréchet <= 0.05, final "
         "<= 0.01, angle along <= 0.1 rad, at the end <= 0.05, push <= 0.10 (extents), ratio "
         "<= 2, arrived 1.0, converged 1.0, 0 violations, safe step >= data step, check CPU <= "
-        "fit CPU." + _commits(rows),
+        "fit CPU; rough: the field's median turn between neighbouring grid points, degrees "
+        "(no bar)." + _commits(rows),
         "",
         "| task | seeds | " + " | ".join(columns) + " | safe step / data step (on rollouts) "
         "| check / fit CPU "
@@ -317,7 +322,7 @@ def table(rows: list[dict], meta: dict) -> str:
         if not mine:
             continue
         worst = {
-            c: None if mine[0][c] is None else max(r[c] for r in mine)
+            c: None if mine[0].get(c) is None else max(r[c] for r in mine)
             for c in columns
             if c != "arrived"
         }
@@ -373,16 +378,19 @@ def main() -> None:
         raise SystemExit(f"no data folder at {DATA}")
     set_threads(args.threads)
     meta = machine(threads=args.threads, jobs=args.jobs)
-    with tempfile.TemporaryDirectory() as drawn:
-        for name in SHAPES:
-            write_csv(name, Path(drawn) / f"{name}.csv")
-        tasks, seeds = zip(*[(t, s) for t in args.tasks.split(",") for s in range(args.seeds)])
-        task_run = partial(
-            one, runs=args.runs, drawn=Path(drawn), threads=args.threads, done_only=args.done_only
-        )
-        with ProcessPoolExecutor(args.jobs) as pool:
-            done = pool.map(task_run, tasks, seeds)
-            rows = [row | {"commit": meta["commit"]} for row in done if row is not None]
+    # Beside the runs, not in a temporary folder: a run's model.json names its data file, so
+    # `--done-only` and `snds plot` of a drawn run read it again later.
+    drawn = args.runs / "drawn"
+    drawn.mkdir(parents=True, exist_ok=True)
+    for name in SHAPES:
+        write_csv(name, drawn / f"{name}.csv")
+    tasks, seeds = zip(*[(t, s) for t in args.tasks.split(",") for s in range(args.seeds)])
+    task_run = partial(
+        one, runs=args.runs, drawn=drawn, threads=args.threads, done_only=args.done_only
+    )
+    with ProcessPoolExecutor(args.jobs) as pool:
+        done = pool.map(task_run, tasks, seeds)
+        rows = [row | {"commit": meta["commit"]} for row in done if row is not None]
     if args.merge and args.out.is_file():
         earlier = json.loads(args.out.read_text())
         commit = earlier["meta"]["commit"]

@@ -143,12 +143,14 @@ def _nominal_gradient(policy, samples, weight: float) -> tuple[torch.Tensor, tor
         captured["out"] = output
 
     handle = policy.nominal_net.register_forward_hook(keep)
-    # Noise-free: the gradients are compared at the very states of the batch.
+    # Noise-free: the gradients are compared at the very states of the batch; no smoothness
+    # penalty, whose own pass over f would be the one the hook keeps.
     config = TrainConfig(
         batch_size=0,
         nominal_weight=weight,
         position_noise=0.0,
         noise_correction=0.0,
+        smooth_weight=0.0,
         dtype="float64",
     )
     loss = losses_module.step_loss(
@@ -201,7 +203,11 @@ def test_position_noise_perturbs_the_states_only(spiral):
     handle = policy.nominal_net.register_forward_hook(lambda m, i, o: seen.append(i[0][:-1]))
     for noise in (0.0, 0.05):
         config = TrainConfig(
-            batch_size=0, position_noise=noise, noise_correction=0.0, dtype="float64"
+            batch_size=0,
+            position_noise=noise,
+            noise_correction=0.0,
+            smooth_weight=0.0,
+            dtype="float64",
         )
         losses_module.step_loss(
             policy,
@@ -279,7 +285,7 @@ def test_penalties_come_every_kth_step_with_k_times_their_weight(spiral):
     )
 
     def loss(step: int, **settings) -> float:
-        weights = {"warp_weight": 0.5, "shape_weight": 0.2} | settings
+        weights = {"warp_weight": 0.5, "shape_weight": 0.2, "smooth_weight": 1e-4} | settings
         train = TrainConfig(position_noise=0.0, noise_correction=0.0, dtype="float64", **weights)
         generator = torch.Generator().manual_seed(3)
         return float(
@@ -288,7 +294,7 @@ def test_penalties_come_every_kth_step_with_k_times_their_weight(spiral):
             ).detach()
         )
 
-    bare = loss(0, warp_weight=0.0, shape_weight=0.0)
+    bare = loss(0, warp_weight=0.0, shape_weight=0.0, smooth_weight=0.0)
     once = loss(0, penalty_every=1)
     # THEN at a multiple of k the penalties enter k times, and between them not at all
     assert once > bare

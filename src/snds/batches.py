@@ -24,6 +24,7 @@ __all__ = [
     "across",
     "corrected_batch",
     "draw_step",
+    "smooth_draws",
     "tracked_batch",
     "uniform_states",
     "warp_draws",
@@ -42,6 +43,7 @@ class StepInputs:
         windows: The window term's starts (M, n), targets (M, Nw, n) and steps (M, Nw).
         shape_states: The shape penalty's states, shape (256, n).
         warp_draws: The warp penalty's random inputs (see :func:`warp_draws`).
+        smooth_draws: The smoothness penalty's states and steps (see :func:`smooth_draws`).
     """
 
     positions: torch.Tensor
@@ -49,6 +51,7 @@ class StepInputs:
     windows: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
     shape_states: torch.Tensor | None = None
     warp_draws: tuple[torch.Tensor, ...] | None = None
+    smooth_draws: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
 
 
 def warp_of(policy: Policy) -> EuclideanizingFlow | None:
@@ -102,6 +105,9 @@ def draw_step(
         inputs = replace(inputs, shape_states=uniform_states(x.shape[-1], generator, param))
     if config.warp_weight and warp_of(policy) is not None and policy.stable:
         inputs = replace(inputs, warp_draws=warp_draws(x.shape[-1], generator, param))
+    if config.smooth_weight:
+        draws = smooth_draws(samples, generator, param, config.smooth_step, config.smooth_radius)
+        inputs = replace(inputs, smooth_draws=draws)
     return inputs
 
 
@@ -168,3 +174,37 @@ def warp_draws(
     Gaussian probe each, both (count, n)."""
     x = uniform_states(dim, generator, like, count)
     return x, torch.randn(count, dim, generator=generator).to(like)
+
+
+def smooth_draws(
+    samples: Samples,
+    generator: torch.Generator,
+    like: torch.Tensor,
+    step: float,
+    radius: float,
+    count: int = 256,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    r""":func:`snds.losses.smooth_penalty`'s random inputs: states (count, n), one step each
+    of length ``step`` in a uniformly random direction (count, n), and each state's weight
+    :math:`1 - \exp(-d^2 / (2 r^2))` (count,), with d its distance from the nearest training
+    sample and r ``radius``, so that the penalty leaves the fit on the data alone.
+
+    The states are uniform in [-2, 2]^n without a phase. With one (``samples.tracked`` > 0)
+    the positions are uniform in [-2, 2] and the other coordinates (phase, a pose's rotation)
+    are a random training sample's for half of the states and 0 for the other half: the
+    slices a rollout visits (:func:`snds.phase.start_state` gives a start beside the data its
+    nearest sample's phase, and one away from them phase 0), which uniform states of the whole
+    box would almost never reach.
+    """
+    n = samples.positions.shape[-1]
+    x = uniform_states(n, generator, like, count)
+    if samples.tracked:
+        index = torch.randint(len(samples.positions), (count,), generator=generator)
+        rest = samples.positions[index.to(samples.positions.device), samples.tracked :].clone()
+        rest[count // 2 :] = 0.0
+        x = torch.cat([x[:, : samples.tracked], rest.to(x)], dim=-1)
+    direction = torch.randn(count, n, generator=generator).to(like)
+    e = step * direction / direction.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    gap = x - samples.positions[samples.nearest(x)].to(x)
+    weight = 1.0 - torch.exp(-(gap * gap).sum(-1) / (2 * radius**2))
+    return x, e, weight

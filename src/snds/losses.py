@@ -15,7 +15,7 @@ import torch
 from scipy.spatial import cKDTree
 from torch import Tensor
 
-from snds.batches import StepInputs, uniform_states, warp_draws, warp_of
+from snds.batches import StepInputs, smooth_draws, uniform_states, warp_draws, warp_of
 from snds.data.demonstrations import Demonstrations, Normalization, Split
 from snds.errors import DataError
 from snds.nn.flow import EuclideanizingFlow
@@ -33,6 +33,8 @@ __all__ = [
     "align_loss",
     "make_samples",
     "shape_penalty",
+    "smooth_penalty",
+    "smooth_penalty_at",
     "shape_penalty_at",
     "srvf",
     "step_loss",
@@ -330,6 +332,9 @@ def step_loss(policy: Policy, config: TrainConfig, inputs: StepInputs) -> torch.
     if inputs.warp_draws is not None:
         warp = warp_penalty_at(warp_of(policy), *inputs.warp_draws)
         loss = loss + every * config.warp_weight * warp
+    if inputs.smooth_draws is not None:
+        smooth = smooth_penalty_at(policy, *inputs.smooth_draws)
+        loss = loss + every * config.smooth_weight * smooth
     return loss
 
 
@@ -354,6 +359,50 @@ def shape_penalty_at(policy: Policy, x: torch.Tensor) -> torch.Tensor:
     """:func:`shape_penalty` at given states x, shape (count, n)."""
     ratio = policy.lyapunov(x) / (x * x).sum(-1)
     return torch.log(ratio).var()
+
+
+def smooth_penalty(
+    policy: Policy,
+    samples: Samples,
+    generator: torch.Generator,
+    step: float,
+    radius: float,
+    count: int = 256,
+) -> torch.Tensor:
+    r""":math:`\operatorname{E}\, w(x) |f(x + e) - 2 f(x) + f(x - e)|^2 / h^4` over random states x
+    off the data (:func:`snds.batches.smooth_draws`, model coordinates) and steps e of
+    length h in a uniformly random direction: the squared second difference of the nominal
+    field f, an estimate of the mean squared curvature of f (:math:`|D^2 f(x)[e, e]|^2 /
+    h^4`) for ripples longer than h.
+
+    It is 0 for a field that is affine along every such step, is hardly changed by one that
+    bends over the demonstrations' scale, and is large for the short waves random Fourier
+    features leave where no data constrain f: what shows as wavy streamlines and rollouts
+    from new starts. The guarantee does not depend on it.
+
+    Arguments:
+        policy: The policy (its :meth:`~snds.policy.Policy.nominal` field).
+        samples: The training samples (the phase of states in a phased space).
+        generator: Source of the random states and steps (the training's).
+        step: h, model coordinates.
+        radius: r of the weight :math:`w(x) = 1 - \exp(-d(x)^2 / (2 r^2))`, d(x) the
+            distance from x to the nearest training sample: the penalty fades on the data,
+            where the demonstrations may ask for sharp turns.
+        count: Number of states.
+    """
+    draws = smooth_draws(samples, generator, next(policy.parameters()), step, radius, count)
+    return smooth_penalty_at(policy, *draws)
+
+
+def smooth_penalty_at(
+    policy: Policy, x: torch.Tensor, e: torch.Tensor, weight: torch.Tensor
+) -> torch.Tensor:
+    """:func:`smooth_penalty` at given states x and steps e, each (count, n), with weights
+    (count,)."""
+    f = policy.nominal(torch.cat([x - e, x, x + e]))
+    below, at, above = f.chunk(3)
+    h2 = (e * e).sum(-1)
+    return (weight * ((above - 2 * at + below) ** 2).sum(-1) / (h2 * h2)).mean()
 
 
 def warp_penalty(

@@ -88,6 +88,15 @@ class TrainConfig:
             demonstration along its path, not across it towards the target (stable policies
             only; 0: off).
         align_cosine: The cosine c of that hinge, in [-1, 1].
+        smooth_weight: Weight of :func:`snds.losses.smooth_penalty`, the squared second
+            difference of the nominal field f over steps of length ``smooth_step`` at random
+            states of :math:`[-2, 2]^n` (model coordinates): it removes the ripples of f's
+            Fourier features off the data, where nothing else constrains f, and leaves fields
+            that bend smoothly alone (0: off).
+        smooth_step: The length h of those steps (model coordinates); ripples shorter than
+            about 4h are damped most.
+        smooth_radius: The penalty fades within about this distance of the training samples
+            (model coordinates), where the demonstrations may ask for sharp turns.
         penalty_every: Evaluate the shape and warp penalties at every k-th step only, with k
             times their weight (1: every step).
         patience: Stop when the smoothed loss has not improved by `min_improvement` (relative)
@@ -123,6 +132,9 @@ class TrainConfig:
     warp_weight: float = 0.001
     align_weight: float = 0.1
     align_cosine: float = 0.5
+    smooth_weight: float = 3e-6
+    smooth_step: float = 0.1
+    smooth_radius: float = 0.1
     penalty_every: int = 4
     patience: int = 0
     min_improvement: float = 1e-3
@@ -165,10 +177,15 @@ class TrainConfig:
             "shape_weight",
             "warp_weight",
             "align_weight",
+            "smooth_weight",
         ):
             weight = getattr(self, name)
             if not (weight >= 0 and math.isfinite(weight)):
                 raise ConfigError(f"{name} must be a number >= 0, got {weight}")
+        for name in ("smooth_step", "smooth_radius"):
+            value = getattr(self, name)
+            if not (value > 0 and math.isfinite(value)):
+                raise ConfigError(f"{name} must be a positive number, got {value}")
         if not (self.lr > 0 and math.isfinite(self.lr)):
             raise ConfigError(f"lr must be a positive number, got {self.lr}")
         try:
