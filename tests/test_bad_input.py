@@ -559,6 +559,7 @@ def test_huge_and_tiny_scales_give_the_same_policy_in_their_units(scale):
         (["--warp-weight", "inf"], "warp_weight must be a number >= 0, got inf"),
         (["--warp-layers", "-2"], "need warp_layers >= 0"),
         (["--tracking-gain", "-3"], "tracking_gain must be a number >= 0, got -3"),
+        (["--smooth-weight", "-0.5"], "smooth_weight must be a number >= 0, got -0.5"),
     ],
 )
 def test_bad_settings_exit_2(argv, message, tmp_path, capsys):

@@ -343,13 +343,12 @@ def test_plots_roll_out_until_every_rollout_arrives():
     assert rollouts.shape[1] == 600 * int(np.ceil(exact.max() / 600)) + 1
 
 
-def test_train_records_the_tracking_gain_asked_for(tmp_path):
+def test_train_records_the_tracking_gain_and_smooth_weight_asked_for(tmp_path):
     out = tmp_path / "untracked"
     argv = ["--quiet", "train", "--motion", "Sine", "--demos", "2", "--out", str(out)]
-    assert (
-        main([*argv, "--steps", "5", "--rollouts", "5", "--samples", "100", "--tracking-gain", "0"])
-        == 0
-    )
+    settings = ["--tracking-gain", "0", "--smooth-weight", "2e-5"]
+    assert main([*argv, "--steps", "5", "--rollouts", "5", "--samples", "100", *settings]) == 0
     description = json.loads((out / "model.json").read_text())
     assert description["train"]["tracking_gain"] == 0.0
+    assert description["train"]["smooth_weight"] == 2e-5
     assert description["train"]["tracking_share"] == TrainConfig().tracking_share

@@ -74,6 +74,13 @@ def register(commands: argparse._SubParsersAction) -> None:
         default=None,
         help="speed limit of the task's positions (user units/s); the guarantee holds under it",
     )
+    parser.add_argument(
+        "--keep-orientation",
+        action="store_true",
+        help="a pose model: keep its target orientation at the arm's orientation at rest "
+        "(default: turn the task's orientations, if needed, so that the arm follows the "
+        "model's path within its joint limits)",
+    )
     obstacle_arguments(parser)
     parser.set_defaults(run=run)
 
@@ -131,6 +138,7 @@ def run(args: argparse.Namespace) -> int:
         push=args.push,
         obstacles=scene,
         max_speed=args.max_speed,
+        fit_orientation=not args.keep_orientation,
     )
     # A state of the model's space: a position, or for a pose model position and quaternion.
     start = demos[args.start_demo].states[0]
@@ -156,6 +164,12 @@ def run(args: argparse.Namespace) -> int:
         line = f"{out}: {outcome}, final error {1000 * result.final_error:.2f} mm"
         if result.drives_orientation:
             line += f" and {result.final_orientation_error:.4f} rad"
+            turn = float(np.linalg.norm(result.orientation_turn))
+            if turn > 0:
+                line += (
+                    f" (the task's orientations turned {turn:.2f} rad from the default, to "
+                    "keep the arm within its joint limits; --keep-orientation: not)"
+                )
         if result.push_time is not None:
             line += f"; pushed at {result.push_time:.2f} s, {recovery_text(result)}"
         print(line)

@@ -126,6 +126,14 @@ def register(commands: argparse._SubParsersAction) -> None:
         help="weight of the penalty that keeps the warp's Jacobian near the identity, against "
         f"stiff fields (default {DEFAULT.train.warp_weight:g}; 0: off)",
     )
+    parser.add_argument(
+        "--smooth-weight",
+        type=float,
+        default=DEFAULT.train.smooth_weight,
+        help="weight of the penalty on the nominal field's second difference off the data, "
+        f"against ripples in streamlines and in rollouts from new starts (default "
+        f"{DEFAULT.train.smooth_weight:g}; 0: off)",
+    )
     parser.add_argument("--unconstrained", action="store_true", help="behavioural cloning")
     parser.add_argument(
         "--architecture",
@@ -210,6 +218,7 @@ def _train_config(args: argparse.Namespace, base: TrainConfig) -> TrainConfig:
         tracking_gain=base.tracking_gain if args.tracking_gain is None else args.tracking_gain,
         shape_weight=base.shape_weight if args.shape_weight is None else args.shape_weight,
         warp_weight=args.warp_weight,
+        smooth_weight=args.smooth_weight,
         device=args.device,
     )
 

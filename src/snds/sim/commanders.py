@@ -32,17 +32,20 @@ from snds.errors import SimulationError
 from snds.obstacles import modulate_twist, step_fraction
 from snds.phase import PhaseKeeper
 from snds.policy import Policy
-from snds.rollout import safe_velocity
+from snds.rollout import rollout_numpy, safe_velocity
 from snds.se3 import PosePolicy
-from snds.sim.arm import EndEffector, orientation_error
+from snds.sim.arm import Arm, EndEffector, orientation_error
 from snds.sim.config import SimConfig
+from snds.sim.orient import choose_rotation
 from snds.sim.placement import Placement, PosePlacement, default_scale
 from snds.sim.robots import Robot
 from snds.spaces import SE3, Euclidean, Phased, Space
+from snds.steppers import GuardedEuler
 
 __all__ = [
     "COMMANDERS",
     "PHASED_COMMANDERS",
+    "PLANNED_POSES",
     "Commander",
     "PhasedCommander",
     "PhasedPoseCommander",
@@ -50,6 +53,9 @@ __all__ = [
     "PositionCommander",
     "make_commander",
 ]
+
+#: Poses along the policy's path that :meth:`PoseCommander.fit_to` checks.
+PLANNED_POSES = 40
 
 
 class Commander(Protocol):
@@ -77,6 +83,11 @@ class Commander(Protocol):
 
     def arrived(self, distance: float, angle: float) -> bool:
         """Whether a pose at ``distance`` metres and ``angle`` radians from the target is there."""
+        ...
+
+    def fit_to(self, arm: Arm, start: np.ndarray) -> Commander:
+        """The commander whose placement the arm (at rest) can follow from ``start``: another
+        turn of a pose task's orientations, or itself."""
         ...
 
 
@@ -160,6 +171,10 @@ class PositionCommander:
         """Within the position tolerance: the held orientation is not the policy's to reach."""
         return distance <= self.config.tolerance
 
+    def fit_to(self, arm: Arm, start: np.ndarray) -> PositionCommander:
+        """Itself: the orientation is held, and the positions keep the task's placement."""
+        return self
+
 
 class PhasedCommander(PositionCommander):
     """A position policy with a phase in its state (:class:`~snds.spaces.Phased`): it drives
@@ -238,6 +253,39 @@ class PoseCommander:
             rest_orientation,
         )
         return cls(policy, placement, config)
+
+    def planned_poses(self, start: np.ndarray, count: int = PLANNED_POSES) -> np.ndarray:
+        """``count`` task poses (count, 7) evenly spaced in time along the policy's own rollout
+        from ``start`` (guarded Euler steps at the control rate, for the run's time limit)."""
+        rate = self.config.control_rate
+        steps = int(np.ceil(self.config.time_limit * rate))
+        start = np.array(start, dtype=float)
+        start[3:7] /= np.linalg.norm(start[3:7])
+        path = rollout_numpy(
+            self.policy,
+            start[None],
+            dt=1.0 / rate,
+            steps=steps,
+            stepper=GuardedEuler(),
+        )[0, :, :7]
+        return path[np.linspace(0, steps, count).round().astype(int)]
+
+    def fit_to(self, arm: Arm, start: np.ndarray) -> PoseCommander:
+        """The same commander with the task's orientations turned so that the arm follows the
+        policy's path from ``start`` within its joint limits
+        (:func:`snds.sim.orient.choose_rotation`); itself where the default turn already
+        fits."""
+        self.start_pose(start)  # the start's shape and quaternion, checked first
+        placement, _ = choose_rotation(
+            arm,
+            self.pose_placement,
+            self.planned_poses(start),
+            tolerance=self.config.tolerance,
+            angle_tolerance=self.config.angle_tolerance,
+        )
+        if placement is self.pose_placement:
+            return self
+        return type(self)(self.policy, placement, self.config)
 
     def start_pose(self, start: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The world pose of a start pose (7,): position (3) and unit quaternion (4)."""

@@ -56,6 +56,10 @@ class SimConfig:
         gravity: Whether gravity acts on the arm.
         max_speed: Speed limit of the task's positions, user units/s (None: none;
             :func:`snds.rollout.safe_velocity`).
+        fit_orientation: For a pose policy, turn the task's orientations so that the arm
+            follows the policy's path from the start within its joint limits
+            (:func:`snds.sim.orient.choose_rotation`); False: the target orientation at the
+            arm's orientation at rest, whatever the path asks.
     """
 
     robot: str = "iiwa"
@@ -70,6 +74,7 @@ class SimConfig:
     hold_gain: float = 5.0
     gravity: bool = True
     max_speed: float | None = None
+    fit_orientation: bool = True
 
     def __post_init__(self) -> None:
         if self.scale is not None and not self.scale > 0:

@@ -57,6 +57,10 @@ class SimResult:
         arm_obstacle_distance: Smallest distance of any link of the arm to an obstacle's
             collision body (PyBullet), metres (None without obstacle bodies).
         contact_steps: Control steps at which the arm touched an obstacle body.
+        orientation_turn: For a pose policy, the turn (rotation vector, radians, world frame,
+            shape (3,)) applied to the default placement of its orientations so that the arm
+            follows the path within its joint limits (``SimConfig.fit_orientation``); zeros
+            when the default fitted (None for a position policy).
     """
 
     config: SimConfig
@@ -84,6 +88,7 @@ class SimResult:
     obstacle_clearance: float | None = None
     arm_obstacle_distance: float | None = None
     contact_steps: int | None = None
+    orientation_turn: np.ndarray | None = None
 
     @property
     def drives_orientation(self) -> bool:
@@ -108,6 +113,9 @@ class SimResult:
             "scale_m_per_unit": self.placement.scale,
             "target": self.placement.target.tolist(),
             "rotation": None if self.rotation is None else self.rotation.tolist(),
+            "orientation_turn_rad": (
+                None if self.orientation_turn is None else self.orientation_turn.tolist()
+            ),
         }
         return {
             "settings": self.config.to_dict(),

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 import torch
+from scipy.spatial.transform import Rotation
 
 from snds.policy import Policy, float64_copy
 from snds.sim.arm import Arm, joint_velocity, orientation_error
@@ -80,6 +81,9 @@ def simulate(policy: Policy, start: np.ndarray, config: SimConfig) -> SimResult:
     with Arm(robot, physics_dt=dt / config.substeps, gravity=config.gravity) as arm:
         arm.reset(arm.rest)
         commander = make_commander(policy, robot, arm.end_effector().orientation, config)
+        default = commander.rotation
+        if config.fit_orientation:
+            commander = commander.fit_to(arm, start)
         placement, goal = commander.placement, commander.goal_orientation
         start_position, start_orientation = commander.start_pose(start)
         bodies = []
@@ -146,6 +150,7 @@ def simulate(policy: Policy, start: np.ndarray, config: SimConfig) -> SimResult:
             final_orientation_error=float(angles[-1]),
             push_time=push_time,
             push_offset=push_offset,
+            orientation_turn=_turn(default, commander.rotation),
             **push_recovery(policy, start, result_states, np.array(times), push_time, dt),
             **_obstacle_record(config, placement, positions_, bodies, contacts, arm_distance),
         )
@@ -169,6 +174,13 @@ def _obstacle_record(
         "arm_obstacle_distance": float(arm_distance) if bodies else None,
         "contact_steps": contacts if bodies else None,
     }
+
+
+def _turn(default: np.ndarray | None, chosen: np.ndarray | None) -> np.ndarray | None:
+    """The rotation vector (3,) from a pose task's default rotation to the chosen one."""
+    if default is None or chosen is None:
+        return None
+    return (Rotation.from_quat(chosen) * Rotation.from_quat(default).inv()).as_rotvec()
 
 
 def _angle(current: np.ndarray, wanted: np.ndarray) -> float:
