@@ -12,6 +12,7 @@ from snds.data import DataSource, Demonstration, Demonstrations, no_split, split
 from snds.evaluate import accuracy
 from snds.losses import AT_TARGET, make_samples
 from snds.phase import Phase
+from snds.spaces import Euclidean
 from snds.train import TrainConfig, TrainingError, fit, training_samples
 
 from conftest import SMALL, make_policy, spiral_demos
@@ -574,10 +575,11 @@ def test_tracking_settings_are_checked(field, value):
 class _Field(torch.nn.Module):
     """A stand-in policy whose nominal field is a given function of the state."""
 
-    def __init__(self, field):
+    def __init__(self, field, position_dim: int):
         super().__init__()
         self.weight = torch.nn.Parameter(torch.zeros(()))
         self.field = field
+        self.space = Euclidean(position_dim)
 
     def nominal(self, x: torch.Tensor) -> torch.Tensor:
         return self.field(x)
@@ -589,13 +591,17 @@ def test_smooth_penalty_is_zero_for_an_affine_field_and_the_curvature_for_a_quad
     e = 0.1 * torch.randn(64, 3, generator=generator, dtype=torch.float64)
     weight = torch.rand(64, generator=generator, dtype=torch.float64)
     a = torch.randn(3, 3, generator=generator, dtype=torch.float64)
-    affine = _Field(lambda s: s @ a.T + 1.5)
+    affine = _Field(lambda s: s @ a.T + 1.5, 3)
     assert float(losses_module.smooth_penalty_at(affine, x, e, weight)) < 1e-20
     # f(x) = (x1^2, 0, x2 x3): its second difference along e is (2 e1^2, 0, 2 e2 e3), so the
     # penalty is the mean of w (4 e1^4 + 4 e2^2 e3^2) / |e|^4
-    quadratic = _Field(lambda s: torch.stack([s[:, 0] ** 2, 0 * s[:, 0], s[:, 1] * s[:, 2]], -1))
+    field = lambda s: torch.stack([s[:, 0] ** 2, 0 * s[:, 0], s[:, 1] * s[:, 2]], -1)  # noqa: E731
     expected = weight * 4 * (e[:, 0] ** 4 + e[:, 1] ** 2 * e[:, 2] ** 2) / (e * e).sum(-1) ** 2
-    got = losses_module.smooth_penalty_at(quadratic, x, e, weight)
+    got = losses_module.smooth_penalty_at(_Field(field, 3), x, e, weight)
+    assert float(got) == pytest.approx(float(expected.mean()), rel=1e-9)
+    # AND only the positions' part of f counts (here the first two outputs)
+    expected = weight * 4 * e[:, 0] ** 4 / (e * e).sum(-1) ** 2
+    got = losses_module.smooth_penalty_at(_Field(field, 2), x, e, weight)
     assert float(got) == pytest.approx(float(expected.mean()), rel=1e-9)
 
 
@@ -603,7 +609,9 @@ def test_smooth_draws_fade_on_the_data_and_keep_a_phase_on_its_slices(spiral):
     # GIVEN a phase model's training samples (positions 2, phase 2)
     policy, samples = _phased_samples(spiral)
     like = next(policy.parameters())
-    x, e, weight = batches.smooth_draws(samples, torch.Generator().manual_seed(1), like, 0.1, 0.1)
+    x, e, weight = batches.smooth_draws(
+        samples, 2, torch.Generator().manual_seed(1), like, 0.1, 0.1
+    )
     # THEN the positions are uniform in [-2, 2]; half the states carry a training sample's
     # phase and half phase 0, the slices a rollout visits
     assert x.shape == e.shape == (256, 4) and weight.shape == (256,)
@@ -612,9 +620,10 @@ def test_smooth_draws_fade_on_the_data_and_keep_a_phase_on_its_slices(spiral):
     phases = samples.positions[:, 2:]
     gap = (x[:128, None, 2:] - phases[None]).abs().sum(-1).min(dim=1).values
     assert float(gap.max()) == 0.0
-    # AND each step has the asked length, each weight is 1 - exp(-d^2 / 2 r^2) from the
-    # nearest training sample: 0 on the data, 1 far from it
+    # AND each step has the asked length, in the positions only; each weight is
+    # 1 - exp(-d^2 / 2 r^2) from the nearest training sample: 0 on the data, 1 far from it
     torch.testing.assert_close(e.norm(dim=-1), torch.full((256,), 0.1, dtype=e.dtype))
+    assert torch.equal(e[:, 2:], torch.zeros(256, 2, dtype=e.dtype))
     d = (x[:, None] - samples.positions[None]).norm(dim=-1).min(dim=1).values
     torch.testing.assert_close(weight, 1 - torch.exp(-(d**2) / (2 * 0.1**2)), rtol=0, atol=1e-12)
 
@@ -626,7 +635,9 @@ def test_smooth_penalty_lowers_the_curvature_of_f_off_the_data(spiral):
     for weight in (0.0, 1e-4):
         policy = make_policy(spiral, seed=0)
         split = no_split(spiral)
-        fit(policy, spiral, split, dataclasses.replace(config, smooth_weight=weight), progress=False)
+        fit(
+            policy, spiral, split, dataclasses.replace(config, smooth_weight=weight), progress=False
+        )
         samples = training_samples(spiral, policy, split, config)
         with torch.no_grad():
             value = losses_module.smooth_penalty(

@@ -106,7 +106,8 @@ def draw_step(
     if config.warp_weight and warp_of(policy) is not None and policy.stable:
         inputs = replace(inputs, warp_draws=warp_draws(x.shape[-1], generator, param))
     if config.smooth_weight:
-        draws = smooth_draws(samples, generator, param, config.smooth_step, config.smooth_radius)
+        p = policy.space.position_dim
+        draws = smooth_draws(samples, p, generator, param, config.smooth_step, config.smooth_radius)
         inputs = replace(inputs, smooth_draws=draws)
     return inputs
 
@@ -178,6 +179,7 @@ def warp_draws(
 
 def smooth_draws(
     samples: Samples,
+    position_dim: int,
     generator: torch.Generator,
     like: torch.Tensor,
     step: float,
@@ -185,26 +187,28 @@ def smooth_draws(
     count: int = 256,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     r""":func:`snds.losses.smooth_penalty`'s random inputs: states (count, n), one step each
-    of length ``step`` in a uniformly random direction (count, n), and each state's weight
-    :math:`1 - \exp(-d^2 / (2 r^2))` (count,), with d its distance from the nearest training
-    sample and r ``radius``, so that the penalty leaves the fit on the data alone.
+    of length ``step`` in a uniformly random direction of the positions (count, n; 0 in the
+    other coordinates), and each state's weight :math:`1 - \exp(-d^2 / (2 r^2))` (count,),
+    with d its distance from the nearest training sample and r ``radius``, so that the penalty
+    leaves the fit on the data alone.
 
-    The states are uniform in [-2, 2]^n without a phase. With one (``samples.tracked`` > 0)
-    the positions are uniform in [-2, 2] and the other coordinates (phase, a pose's rotation)
-    are a random training sample's for half of the states and 0 for the other half: the
-    slices a rollout visits (:func:`snds.phase.start_state` gives a start beside the data its
-    nearest sample's phase, and one away from them phase 0), which uniform states of the whole
-    box would almost never reach.
+    The positions (the first ``position_dim`` coordinates) are uniform in [-2, 2]. The other
+    coordinates, if any (a phase, a pose's rotation), are a random training sample's for half
+    of the states and 0 for the other half: the slices a rollout visits
+    (:func:`snds.phase.start_state` gives a start beside the data its nearest sample's phase,
+    and one away from them phase 0), which uniform states of the whole box would almost never
+    reach.
     """
     n = samples.positions.shape[-1]
-    x = uniform_states(n, generator, like, count)
-    if samples.tracked:
+    x = uniform_states(position_dim, generator, like, count)
+    if n > position_dim:
         index = torch.randint(len(samples.positions), (count,), generator=generator)
-        rest = samples.positions[index.to(samples.positions.device), samples.tracked :].clone()
+        rest = samples.positions[index.to(samples.positions.device), position_dim:].clone()
         rest[count // 2 :] = 0.0
-        x = torch.cat([x[:, : samples.tracked], rest.to(x)], dim=-1)
-    direction = torch.randn(count, n, generator=generator).to(like)
-    e = step * direction / direction.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        x = torch.cat([x, rest.to(x)], dim=-1)
+    direction = torch.randn(count, position_dim, generator=generator).to(like)
+    e = torch.zeros_like(x)
+    e[:, :position_dim] = step * direction / direction.norm(dim=-1, keepdim=True).clamp_min(1e-12)
     gap = x - samples.positions[samples.nearest(x)].to(x)
     weight = 1.0 - torch.exp(-(gap * gap).sum(-1) / (2 * radius**2))
     return x, e, weight

@@ -369,11 +369,12 @@ def smooth_penalty(
     radius: float,
     count: int = 256,
 ) -> torch.Tensor:
-    r""":math:`\operatorname{E}\, w(x) |f(x + e) - 2 f(x) + f(x - e)|^2 / h^4` over random states x
-    off the data (:func:`snds.batches.smooth_draws`, model coordinates) and steps e of
-    length h in a uniformly random direction: the squared second difference of the nominal
-    field f, an estimate of the mean squared curvature of f (:math:`|D^2 f(x)[e, e]|^2 /
-    h^4`) for ripples longer than h.
+    r""":math:`\operatorname{E}\, w(x) |f_p(x + e) - 2 f_p(x) + f_p(x - e)|^2 / h^4` over random
+    states x off the data (:func:`snds.batches.smooth_draws`, model coordinates) and steps e of
+    length h in a uniformly random direction of the positions: the squared second difference
+    of the positions' part :math:`f_p` of the nominal field, an estimate of its mean squared
+    curvature (:math:`|D^2 f_p(x)[e, e]|^2 / h^4`) for ripples longer than h. A phase and a
+    pose's rotation are left alone: the streamlines are the positions'.
 
     It is 0 for a field that is affine along every such step, is hardly changed by one that
     bends over the demonstrations' scale, and is large for the short waves random Fourier
@@ -390,7 +391,8 @@ def smooth_penalty(
             where the demonstrations may ask for sharp turns.
         count: Number of states.
     """
-    draws = smooth_draws(samples, generator, next(policy.parameters()), step, radius, count)
+    p = policy.space.position_dim
+    draws = smooth_draws(samples, p, generator, next(policy.parameters()), step, radius, count)
     return smooth_penalty_at(policy, *draws)
 
 
@@ -399,7 +401,7 @@ def smooth_penalty_at(
 ) -> torch.Tensor:
     """:func:`smooth_penalty` at given states x and steps e, each (count, n), with weights
     (count,)."""
-    f = policy.nominal(torch.cat([x - e, x, x + e]))
+    f = policy.nominal(torch.cat([x - e, x, x + e]))[:, : policy.space.position_dim]
     below, at, above = f.chunk(3)
     h2 = (e * e).sum(-1)
     return (weight * ((above - 2 * at + below) ** 2).sum(-1) / (h2 * h2)).mean()
