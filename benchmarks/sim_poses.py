@@ -5,8 +5,9 @@ pouring and bottle2shelf files and the Panda kinesthetic poses, one run per seed
 default ``snds simulate RUN --robot ROBOT`` from the first demonstration's first pose on each
 arm and reads its ``sim.json``: whether it reached the target (1 mm and 0.02 rad, the
 defaults) and whether it ended within 1 cm and 0.05 rad, the final errors, the error of the
-arm's start against the demonstration's start (the inverse kinematics from rest), and how
-close the joints came to their limits.
+arm's start against the demonstration's start (the inverse kinematics from rest), how
+close the joints came to their limits, and how far the simulator turned the task's
+orientations to fit the arm (``snds.sim.orient``).
 
     python benchmarks/real_recordings.py --seeds 3 --jobs 2   # trains the runs
     python benchmarks/sim_poses.py                            # then this
@@ -50,6 +51,7 @@ def simulate(run: Path, robot: str) -> dict:
         "start_rad": record["start_orientation_error_rad"],
         "joint_margin_rad": float(margin.min()),
         "tightest_joint": int(np.argmin(margin.min(axis=0))) + 1,
+        "turn_rad": float(np.linalg.norm(record["placement"]["orientation_turn_rad"])),
     }
 
 
@@ -60,23 +62,24 @@ def _cell(mine: list[dict]) -> str:
         f"{sum(r['reached'] for r in mine)} / {near} of {len(mine)} | {worst['final_mm']:.1f} / "
         f"{worst['final_rad']:.3f} | {max(r['start_mm'] for r in mine):.0f} / "
         f"{max(r['start_rad'] for r in mine):.2f} | {worst['joint_margin_rad']:.2f} "
-        f"({worst['tightest_joint']})"
+        f"({worst['tightest_joint']}) | {sum(r['turn_rad'] > 0 for r in mine)}"
     )
 
 
 def table(rows: list[dict], meta: dict) -> str:
     head = " | ".join(
         f"{robot}: reached / within 1 cm, 0.05 rad | final mm / rad | start mm / rad "
-        "| joint margin rad (joint)"
+        "| joint margin rad (joint) | turned"
         for robot in ROBOTS
     )
     lines = [
         f"{machine_line(meta)} `python benchmarks/sim_poses.py`: default `snds simulate` (30 s, "
         "1 mm and 0.02 rad) of the pose runs above from their first demonstration's start; the "
-        "worst run.",
+        "worst run; turned: runs whose orientations the simulator turned to fit the arm's "
+        "joint limits (`--keep-orientation` not given).",
         "",
         f"| task | {head} |",
-        "|---" * (1 + 4 * len(ROBOTS)) + "|",
+        "|---" * (1 + 5 * len(ROBOTS)) + "|",
     ]
     for task in POSE_TASKS:
         cells = [_cell(m) for robot in ROBOTS if (m := _of(rows, task, robot))]
