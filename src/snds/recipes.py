@@ -45,7 +45,7 @@ class Recipe:
 #: - ``pose``: the former training settings of SE(3) pose models, kept for their models:
 #:   V's shape penalty on (``shape_weight`` 0.01), no noise on the training states
 #:   (``position_noise`` 0), no noise correction, no tracking, no alignment term
-#:   (``align_weight`` 0), no smoothness penalty (``smooth_weight`` 0).
+#:   (``align_weight`` 0).
 RECIPES: dict[str, Recipe] = {
     "default": Recipe(),
     "compact": Recipe(policy=PolicyConfig(hidden=(64, 64), fourier_features=64)),
@@ -56,7 +56,6 @@ RECIPES: dict[str, Recipe] = {
             noise_correction=0.0,
             tracking_gain=0.0,
             align_weight=0.0,
-            smooth_weight=0.0,
         )
     ),
 }

@@ -89,10 +89,11 @@ class TrainConfig:
             only; 0: off).
         align_cosine: The cosine c of that hinge, in [-1, 1].
         smooth_weight: Weight of :func:`snds.losses.smooth_penalty`, the squared second
-            difference of the nominal field f over steps of length ``smooth_step`` at random
-            states of :math:`[-2, 2]^n` (model coordinates): it removes the ripples of f's
-            Fourier features off the data, where nothing else constrains f, and leaves fields
-            that bend smoothly alone (0: off).
+            difference of the positions' part of the nominal field f over steps of length
+            ``smooth_step`` at random states off the data (model coordinates): it damps the
+            ripples of f's Fourier features where nothing else constrains f, and leaves fields
+            that bend smoothly alone (0: off, the default; 3e-6 and why it is not the default
+            in docs/design.md).
         smooth_step: The length h of those steps (model coordinates); ripples shorter than
             about 4h are damped most.
         smooth_radius: The penalty fades within about this distance of the training samples
@@ -132,7 +133,7 @@ class TrainConfig:
     warp_weight: float = 0.001
     align_weight: float = 0.1
     align_cosine: float = 0.5
-    smooth_weight: float = 3e-6
+    smooth_weight: float = 0.0
     smooth_step: float = 0.1
     smooth_radius: float = 0.1
     penalty_every: int = 4

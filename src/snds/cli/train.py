@@ -130,9 +130,10 @@ def register(commands: argparse._SubParsersAction) -> None:
         "--smooth-weight",
         type=float,
         default=DEFAULT.train.smooth_weight,
-        help="weight of the penalty on the nominal field's second difference off the data, "
-        f"against ripples in streamlines and in rollouts from new starts (default "
-        f"{DEFAULT.train.smooth_weight:g}; 0: off)",
+        help="weight of the penalty on the second difference of the nominal field's positions "
+        "off the data, against ripples in streamlines and in rollouts from new starts "
+        f"(default {DEFAULT.train.smooth_weight:g}: off; 3e-6 damps them, at a cost measured "
+        "in docs/design.md)",
     )
     parser.add_argument("--unconstrained", action="store_true", help="behavioural cloning")
     parser.add_argument(
