@@ -24,7 +24,7 @@ from scipy.spatial.transform import Rotation
 from snds.errors import SimulationError
 from snds.sim.robots import Robot
 
-__all__ = ["Arm", "EndEffector", "joint_velocity", "orientation_error"]
+__all__ = ["Arm", "EndEffector", "joint_velocity", "orientation_angle", "orientation_error"]
 
 
 def joint_velocity(
@@ -79,6 +79,11 @@ def orientation_error(current: np.ndarray, wanted: np.ndarray) -> np.ndarray:
         wanted: A quaternion (x, y, z, w).
     """
     return (Rotation.from_quat(wanted) * Rotation.from_quat(current).inv()).as_rotvec()
+
+
+def orientation_angle(current: np.ndarray, wanted: np.ndarray) -> float:
+    """Angle (radians, [0, pi]) of the rotation from one orientation (x, y, z, w) to another."""
+    return float(np.linalg.norm(orientation_error(current, wanted)))
 
 
 @dataclass(frozen=True)

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from snds.sim.arm import Arm, orientation_error
+from snds.sim.arm import Arm, orientation_angle
 from snds.sim.placement import PosePlacement
 
 __all__ = ["CANDIDATE_ANGLES", "PathFit", "candidate_turns", "choose_rotation", "path_fit"]
@@ -74,8 +74,7 @@ def path_fit(
     for pose in poses:
         position, orientation = placement.to_world(pose[:3], pose[3:7])
         error = max(error, arm.move_to(position, orientation))
-        turn = orientation_error(arm.end_effector().orientation, orientation)
-        angle = max(angle, float(np.linalg.norm(turn)))
+        angle = max(angle, orientation_angle(arm.end_effector().orientation, orientation))
         q = arm.joint_positions()
         margin = min(margin, float(np.min(np.minimum(q - arm.lower, arm.upper - q))))
         if error > tolerance or angle > angle_tolerance:

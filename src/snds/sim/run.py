@@ -20,7 +20,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from snds.policy import Policy, float64_copy
-from snds.sim.arm import Arm, joint_velocity, orientation_error
+from snds.sim.arm import Arm, joint_velocity, orientation_angle
 from snds.sim.commanders import (
     COMMANDERS,
     PHASED_COMMANDERS,
@@ -91,7 +91,7 @@ def simulate(policy: Policy, start: np.ndarray, config: SimConfig) -> SimResult:
             bodies = arm.add_obstacles(world_shapes(config.obstacles, placement))
         contacts, arm_distance = 0, np.inf
         start_error = arm.move_to(start_position, start_orientation)
-        start_angle = _angle(arm.end_effector().orientation, start_orientation)
+        start_angle = orientation_angle(arm.end_effector().orientation, start_orientation)
         # The motors track an integrated reference, not "measured + one step": a reference
         # ahead of a sagging arm keeps pushing, so gravity leaves no steady-state offset.
         reference = arm.joint_positions()
@@ -114,7 +114,7 @@ def simulate(policy: Policy, start: np.ndarray, config: SimConfig) -> SimResult:
             joints.append(q)
             pushed = config.push is None or step >= config.push.step
             distance = float(np.linalg.norm(pose.position - placement.origin))
-            arrived = commander.arrived(distance, _angle(pose.orientation, goal))
+            arrived = commander.arrived(distance, orientation_angle(pose.orientation, goal))
             if (arrived and pushed) or step == steps:
                 break
             qdot = _controller(arm, commander.twist(pose), q, 1.0 / config.control_rate)
@@ -127,7 +127,7 @@ def simulate(policy: Policy, start: np.ndarray, config: SimConfig) -> SimResult:
                 arm_distance = min(arm_distance, nearest)
         positions_ = np.array(positions)
         orientations_ = np.array(orientations)
-        angles = np.array([_angle(o, goal) for o in orientations_])
+        angles = np.array([orientation_angle(o, goal) for o in orientations_])
         distance = float(np.linalg.norm(positions_[-1] - placement.origin))
         result_states = np.array([placement.to_task(p) for p in positions_])
         return SimResult(
@@ -181,11 +181,6 @@ def _turn(default: np.ndarray | None, chosen: np.ndarray | None) -> np.ndarray |
     if default is None or chosen is None:
         return None
     return (Rotation.from_quat(chosen) * Rotation.from_quat(default).inv()).as_rotvec()
-
-
-def _angle(current: np.ndarray, wanted: np.ndarray) -> float:
-    """Angle (radians, [0, pi]) of the rotation from one orientation to another."""
-    return float(np.linalg.norm(orientation_error(current, wanted)))
 
 
 #: Joints are not commanded closer than this to their position limits (radians).
