@@ -148,12 +148,15 @@ def machine_line(meta: dict) -> str:
     )
 
 
-def write_results(name: str, rows: Sequence[dict], meta: dict, *, folder: Path = RESULTS) -> Path:
-    """Writes ``folder/name.json`` (``{"meta": ..., "rows": ...}``) and ``name.csv``."""
+def write_results(
+    name: str, rows: Sequence[dict], meta: dict, *, folder: Path = RESULTS, with_csv: bool = True
+) -> Path:
+    """Writes ``folder/name.json`` (``{"meta": ..., "rows": ...}``) and (``with_csv``)
+    ``name.csv``, each through a temporary file and a rename."""
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / f"{name}.json"
     _replace(path, json.dumps({"meta": meta, "rows": list(rows)}, indent=1) + "\n")
-    if rows:
+    if rows and with_csv:
         fields = list(dict.fromkeys(key for row in rows for key in row))
         tmp = path.with_suffix(".csv.tmp")
         with open(tmp, "w", newline="") as handle:

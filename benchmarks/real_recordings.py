@@ -63,6 +63,7 @@ from _runner import (
     parser,
     set_threads,
     write_readme_section,
+    write_results,
 )
 
 from snds.data import DataSource
@@ -398,8 +399,7 @@ def main() -> None:
         kept = [r for r in earlier["rows"] if r["task"] not in ran]
         rows = [{"commit": commit} | r for r in kept] + rows
         rows.sort(key=lambda r: (list(TASKS).index(r["task"]), r["seed"]))
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
+    write_results(args.out.stem, rows, meta, folder=args.out.parent, with_csv=False)
     if not args.no_readme:
         write_readme_section("real-recordings", table(rows, meta))
 

@@ -130,7 +130,12 @@ def run_one(
 
 
 def label(schedule: dict) -> str:
-    return f"{schedule['steps']} steps, lr {schedule['lr']:g}, new x{schedule['new_weight']}"
+    text = f"{schedule['steps']} steps, lr {schedule['lr']:g}, new x{schedule['new_weight']}"
+    if schedule.get("batch_size") is not None:
+        text += f", batch {schedule['batch_size']}"
+    if not schedule.get("fit_lyapunov", True):
+        text += ", V kept"
+    return text
 
 
 def summarise(rows: list[dict]) -> str:
@@ -170,8 +175,15 @@ def summarise(rows: list[dict]) -> str:
 
 
 def parse_schedule(text: str) -> RefineConfig:
-    steps, lr, weight = text.split(":")
-    return RefineConfig(steps=int(steps), lr=float(lr), new_weight=int(weight))
+    """``steps:lr:new_weight[:batch_size[:keep]]`` (``keep``: V stays as trained)."""
+    steps, lr, weight, *rest = text.split(":")
+    return RefineConfig(
+        steps=int(steps),
+        lr=float(lr),
+        new_weight=int(weight),
+        batch_size=int(rest[0]) if rest and rest[0] else None,
+        fit_lyapunov=not (len(rest) > 1 and rest[1] == "keep"),
+    )
 
 
 def main() -> None:

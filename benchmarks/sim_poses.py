@@ -24,7 +24,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from _runner import RESULTS, machine, machine_line, parser, write_readme_section
+from _runner import RESULTS, machine, machine_line, parser, write_readme_section, write_results
 
 #: The pose tasks of real_recordings.py.
 POSE_TASKS = ("pouring", "bottle2shelf", "panda_pose")
@@ -107,8 +107,7 @@ def main() -> None:
                 rows.append(row)
     if not rows:
         raise SystemExit(f"no pose runs under {args.runs}: run real_recordings.py first")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
+    write_results(args.out.stem, rows, meta, folder=args.out.parent, with_csv=False)
     if not args.no_readme:
         write_readme_section("sim-poses", table(rows, meta))
 

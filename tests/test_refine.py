@@ -49,10 +49,12 @@ def same_weights(a: torch.nn.Module, b: torch.nn.Module) -> bool:
     return left.keys() == right.keys() and all(torch.equal(left[k], right[k]) for k in left)
 
 
-@pytest.mark.parametrize("weight", [1, 3])
-def test_a_refinement_is_a_fit_from_the_trained_weights_bit_for_bit(task, weight):
+@pytest.mark.parametrize(
+    "weight, extra", [(1, {}), (3, {}), (1, {"batch_size": None, "fit_lyapunov": True})]
+)
+def test_a_refinement_is_a_fit_from_the_trained_weights_bit_for_bit(task, weight, extra):
     trained, demos, split = task
-    config = dataclasses.replace(SHORT, new_weight=weight)
+    config = dataclasses.replace(SHORT, new_weight=weight, **extra)
     # WHEN the trained policy is refined with the third demonstration
     refined = copy.deepcopy(trained)
     done = refine(refined, demos, split, config=config, train=TRAIN, new=[2])
@@ -69,6 +71,9 @@ def test_a_refinement_is_a_fit_from_the_trained_weights_bit_for_bit(task, weight
     ).history
     assert same_weights(refined, expected) and done.result.history == history
     assert done.train.steps == 20 and done.train.lr == 5e-3 and done.train.seed == TRAIN.seed
+    # with the refinement's batch (None: the model's own) and V kept or trained as it says
+    batch = TRAIN.batch_size if config.batch_size is None else config.batch_size
+    assert done.train.batch_size == batch and done.train.fit_lyapunov == config.fit_lyapunov
     # and the policy's scaling is the trained one's
     assert refined.normalization.to_dict() == trained.normalization.to_dict()
 
@@ -179,7 +184,15 @@ def test_a_new_demonstration_ending_far_from_the_target_is_refused():
 
 
 @pytest.mark.parametrize(
-    "field, value", [("steps", 0), ("lr", 0.0), ("new_weight", 0), ("final_lr_fraction", 2.0)]
+    "field, value",
+    [
+        ("steps", 0),
+        ("lr", 0.0),
+        ("new_weight", 0),
+        ("final_lr_fraction", 2.0),
+        ("batch_size", -1),
+        ("batch_size", 1.5),
+    ],
 )
 def test_refine_config_refuses_bad_values(field, value):
     with pytest.raises(ConfigError, match=field.split("_")[0]):

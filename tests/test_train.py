@@ -646,3 +646,35 @@ def test_smooth_penalty_lowers_the_curvature_of_f_off_the_data(spiral):
         curvature[weight] = float(value)
     # THEN f bends less off the data
     assert curvature[1e-4] < 0.5 * curvature[0.0]
+
+
+def test_a_fit_that_keeps_v_moves_only_the_nominal_field_and_stays_stable(spiral):
+    from snds.decrease import decrease_violations
+    from snds.train import held_parameters, trained_parameters
+
+    policy = make_policy(spiral, dtype=torch.float32)
+    config = dataclasses.replace(FAST, steps=40, fit_lyapunov=False)
+    held = held_parameters(policy, config)
+    assert held and len(held) + len(trained_parameters(policy, config)) == len(
+        list(policy.parameters())
+    )
+    assert held_parameters(policy, FAST) == [] and len(trained_parameters(policy, FAST)) == len(
+        list(policy.parameters())
+    )
+    v_before = {k: v.clone() for k, v in policy.lyapunov.state_dict().items()}
+    f_before = {k: v.clone() for k, v in policy.nominal_net.state_dict().items()}
+    # WHEN it fits with V kept
+    result = fit(policy, spiral, no_split(spiral), config, progress=False)
+    # THEN V's weights are the same bits, the nominal field's have moved and learnt
+    assert all(torch.equal(v_before[k], v) for k, v in policy.lyapunov.state_dict().items())
+    assert not all(torch.equal(f_before[k], v) for k, v in policy.nominal_net.state_dict().items())
+    assert np.mean(result.history[-5:]) < np.mean(result.history[:5])
+    # and every parameter takes gradients again afterwards
+    assert all(p.requires_grad for p in policy.parameters())
+    # and the guarantee holds at random and far states (float64)
+    generator = torch.Generator().manual_seed(0)
+    extent = spiral.extent()
+    x = (torch.rand(4000, 2, generator=generator, dtype=torch.float64) - 0.5) * 6 * extent
+    far = torch.randn(500, 2, generator=generator, dtype=torch.float64) * 1e3 * extent
+    policy64 = policy.double()
+    assert decrease_violations(policy64, x) == 0 and decrease_violations(policy64, far) == 0

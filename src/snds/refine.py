@@ -62,13 +62,19 @@ class RefineConfig:
         final_lr_fraction: The cosine schedule decays to lr x this.
         new_weight: How many times each new demonstration's samples count among the
             training samples (1: as often as an old demonstration's).
+        batch_size: Samples per step for the velocity term (None: the model's own).
+        fit_lyapunov: Train V too (False: V stays as the model learnt it and only the
+            nominal field f moves, which makes a step cheaper; the guarantee holds either
+            way, see :attr:`snds.train.TrainConfig.fit_lyapunov`).
         max_seconds: Stop after this wall time (None: no limit).
     """
 
-    steps: int = 100
+    steps: int = 130
     lr: float = 5e-3
     final_lr_fraction: float = 0.1
     new_weight: int = 1
+    batch_size: int | None = 256
+    fit_lyapunov: bool = False
     max_seconds: float | None = None
 
     def __post_init__(self) -> None:
@@ -80,6 +86,11 @@ class RefineConfig:
             raise ConfigError(f"final_lr_fraction must be in (0, 1], got {self.final_lr_fraction}")
         if type(self.new_weight) is not int or self.new_weight < 1:
             raise ConfigError(f"new_weight must be an integer >= 1, got {self.new_weight!r}")
+        batch = self.batch_size
+        if batch is not None and (type(batch) is not int or batch < 0):
+            raise ConfigError(
+                f"refinement batch_size must be an integer >= 0 or None, got {self.batch_size!r}"
+            )
 
     def to_dict(self) -> dict:
         """JSON-ready form."""
@@ -88,13 +99,15 @@ class RefineConfig:
 
 def refine_settings(config: RefineConfig, train: TrainConfig) -> TrainConfig:
     """The training settings of a refinement: the model's ``train`` with the refinement's
-    steps, learning rate, final fraction and time limit (no early stop by plateau, whose
-    smoothed loss would start from the trained model's)."""
+    steps, learning rate, final fraction, batch size, whether V trains and time limit (no
+    early stop by plateau, whose smoothed loss would start from the trained model's)."""
     return dataclasses.replace(
         train,
         steps=config.steps,
         lr=config.lr,
         final_lr_fraction=config.final_lr_fraction,
+        batch_size=train.batch_size if config.batch_size is None else config.batch_size,
+        fit_lyapunov=config.fit_lyapunov,
         max_seconds=config.max_seconds,
         patience=0,
     )

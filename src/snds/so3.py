@@ -7,8 +7,10 @@ inverse, and uniform random orientations.
 
 from __future__ import annotations
 
+import importlib
+from types import ModuleType
+
 import numpy as np
-import roma
 import torch
 from torch import Tensor
 
@@ -18,8 +20,15 @@ __all__ = [
     "left_jacobian_inverse",
     "random_quaternions",
     "relative_rotvec",
+    "roma",
     "rotate",
 ]
+
+
+def roma() -> ModuleType:
+    """The roma package, imported at its first use: importing it imports torch's compiler
+    stack (about a second), which a position model never needs."""
+    return importlib.import_module("roma")
 
 
 def relative_rotvec(q: Tensor, q_target: Tensor) -> Tensor:
@@ -35,14 +44,16 @@ def relative_rotvec(q: Tensor, q_target: Tensor) -> Tensor:
     Returns:
         Rotation vectors, shape (*, 3).
     """
-    relative = roma.quat_product(q, roma.quat_conjugation(q_target.expand_as(q)))
-    return roma.unitquat_to_rotvec(relative, shortest_arc=True)
+    quat = roma()
+    relative = quat.quat_product(q, quat.quat_conjugation(q_target.expand_as(q)))
+    return quat.unitquat_to_rotvec(relative, shortest_arc=True)
 
 
 def rotate(rotvec: Tensor, q: Tensor) -> Tensor:
     r""":math:`\exp(r) \, q`: the orientation ``q`` (*, 4) turned by ``rotvec`` (*, 3) in the
     world frame."""
-    return roma.quat_product(roma.rotvec_to_unitquat(rotvec), q)
+    quat = roma()
+    return quat.quat_product(quat.rotvec_to_unitquat(rotvec), q)
 
 
 def _hat(r: Tensor) -> Tensor:

@@ -26,11 +26,10 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 import numpy as np
-import roma
 import torch
 from torch import Tensor
 
-from snds.so3 import random_quaternions, relative_rotvec, rotate
+from snds.so3 import random_quaternions, relative_rotvec, roma, rotate
 
 __all__ = ["SE3", "Euclidean", "Phased", "Space"]
 
@@ -299,7 +298,7 @@ class SE3(Space):
 
     def advance(self, x: Tensor, h: Tensor, velocity: Tensor) -> Tensor:
         h = h.unsqueeze(-1)
-        orientation = roma.quat_normalize(rotate(h * velocity[..., 3:], x[..., 3:]))
+        orientation = roma().quat_normalize(rotate(h * velocity[..., 3:], x[..., 3:]))
         return torch.cat([x[..., :3] + h * velocity[..., :3], orientation], -1)
 
     def errors(self, x: Tensor, y: Tensor) -> Tensor:

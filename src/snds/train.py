@@ -8,10 +8,11 @@ checkpoint's format is :mod:`snds.checkpoint`'s; the optimiser's step :mod:`snds
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -54,9 +55,11 @@ __all__ = [
     "TrainResult",
     "TrainingError",
     "fit",
+    "held_parameters",
     "prepare_fit",
     "single_losses",
     "train_loop",
+    "trained_parameters",
     "training_samples",
 ]
 
@@ -189,7 +192,37 @@ class Fit:
 
     def __post_init__(self) -> None:
         # The same tensors for the whole fit: a restart reloads the state dict in place.
-        self.parameters = list(self.policy.parameters())
+        self.parameters = trained_parameters(self.policy, self.config)
+
+
+def held_parameters(policy: Policy, config: TrainConfig) -> list[torch.Tensor]:
+    """The parameters a fit leaves as they are: V's when ``config.fit_lyapunov`` is False
+    (none otherwise, or for a policy without V)."""
+    lyapunov = getattr(policy, "lyapunov", None)
+    if config.fit_lyapunov or lyapunov is None:
+        return []
+    return list(lyapunov.parameters())
+
+
+def trained_parameters(policy: Policy, config: TrainConfig) -> list[torch.Tensor]:
+    """The parameters a fit moves: the policy's but :func:`held_parameters`, in the policy's
+    order."""
+    held = {id(p) for p in held_parameters(policy, config)}
+    return [p for p in policy.parameters() if id(p) not in held]
+
+
+@contextlib.contextmanager
+def _holding(fits: Sequence[Fit]) -> Iterator[None]:
+    """The fits' held parameters need no gradient while they train (restored after)."""
+    held = [p for one in fits for p in held_parameters(one.policy, one.config)]
+    before = [p.requires_grad for p in held]
+    try:
+        for p in held:
+            p.requires_grad_(False)
+        yield
+    finally:
+        for p, flag in zip(held, before):
+            p.requires_grad_(flag)
 
 
 def prepare_fit(
@@ -214,7 +247,7 @@ def prepare_fit(
     samples = training_samples(policy.training_demonstrations(demos), policy, split, config)
     policy.set_anchors(samples.positions)
     generator = torch.Generator().manual_seed(config.seed)
-    optimizer = adam(policy.parameters(), config.lr)
+    optimizer = adam(trained_parameters(policy, config), config.lr)
     state = FitState(good=copy.deepcopy(policy.state_dict()))
     identity = {}
     if checkpoint is not None:
@@ -257,6 +290,17 @@ def train_loop(
     Raises:
         TrainingError: If a fit's loss keeps diverging (the message names the fit).
     """
+    with _holding(fits):
+        _train_loop(fits, losses_of, callbacks=callbacks, checkpoint_every=checkpoint_every)
+
+
+def _train_loop(
+    fits: list[Fit],
+    losses_of: Losses,
+    *,
+    callbacks: Sequence[Callback],
+    checkpoint_every: int,
+) -> None:
     config = fits[0].config
     start = time.perf_counter() - fits[0].state.result.seconds
     for one in fits:
@@ -361,7 +405,7 @@ def _restart(one: Fit, value: float) -> None:
             f"{value:.3g}); try a lower lr"
         )
     one.policy.load_state_dict(state.good)
-    one.optimizer = adam(one.policy.parameters(), one.config.lr)
+    one.optimizer = adam(one.parameters, one.config.lr)
     state.lr_scale *= 0.5
 
 

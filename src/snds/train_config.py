@@ -98,6 +98,10 @@ class TrainConfig:
             about 4h are damped most.
         smooth_radius: The penalty fades within about this distance of the training samples
             (model coordinates), where the demonstrations may ask for sharp turns.
+        fit_lyapunov: Train V's parameters as well as the nominal field's (False: V stays as
+            it is and only f learns, which skips V's parameters in the backward pass; the
+            guarantee is structural and holds either way). A refinement keeps V
+            (:class:`snds.refine.RefineConfig`).
         penalty_every: Evaluate the shape and warp penalties at every k-th step only, with k
             times their weight (1: every step).
         patience: Stop when the smoothed loss has not improved by `min_improvement` (relative)
@@ -137,6 +141,7 @@ class TrainConfig:
     smooth_step: float = 0.1
     smooth_radius: float = 0.1
     penalty_every: int = 4
+    fit_lyapunov: bool = True
     patience: int = 0
     min_improvement: float = 1e-3
     max_restarts: int = 5

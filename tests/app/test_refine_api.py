@@ -7,6 +7,8 @@ import json
 
 import pytest
 
+from snds.refine import RefineConfig
+
 pytest.importorskip("starlette", reason="snds app needs the app extra (pip install 'snds[app]')")
 
 
@@ -23,7 +25,7 @@ def test_a_stroke_added_after_training_refines_the_policy(client, trained, helpe
     events = read_events(client, refined)
     # THEN a new job refines the policy in the refinement's steps, then checks it
     assert events[-1]["state"] == "done", events[-1]
-    assert max(e["step"] for e in events) == 100
+    assert max(e["step"] for e in events) == RefineConfig().steps
     status = client.get(f"/api/jobs/{refined}").json()
     assert len(status["result"]["demos"]) == 4
     stability = status["metrics"]["stability"]
@@ -32,7 +34,7 @@ def test_a_stroke_added_after_training_refines_the_policy(client, trained, helpe
     assert client.get(f"/api/jobs/{job}").json()["state"] == "done"
     record = json.loads((client.app.state.jobs.get(refined).model / "model.json").read_text())
     assert record["refined_from"]["model"].endswith(f"{job}/model")
-    assert record["train_result"]["steps"] == 100
+    assert record["train_result"]["steps"] == RefineConfig().steps
 
 
 def test_a_refinement_must_add_to_the_jobs_own_strokes(client, trained, helpers):

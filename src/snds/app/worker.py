@@ -33,9 +33,12 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import IO, Any
 
+import torch
+
 from snds.callbacks import Callback, EndEvent, SavedEvent, StepEvent
 from snds.data import DataSource
 from snds.errors import ConfigError, SNDSError
+from snds.optim import adam
 from snds.recipes import RECIPES
 from snds.refine_run import refine_run
 from snds.run import train_run
@@ -192,6 +195,9 @@ def main() -> None:
     # Anything the library prints must not mix with the events: stdout becomes stderr.
     events = os.fdopen(os.dup(sys.stdout.fileno()), "w")
     os.dup2(sys.stderr.fileno(), sys.stdout.fileno())
+    # While no job has come yet: torch imports its compiler guard (about a second) at the
+    # first optimiser a process builds, which the job would otherwise wait for.
+    adam([torch.zeros(1, requires_grad=True)], 1e-3)
     line = sys.stdin.readline()
     if not line:
         return
