@@ -176,13 +176,18 @@ def summarise(rows: list[dict]) -> str:
 
 def parse_schedule(text: str) -> RefineConfig:
     """``steps:lr:new_weight[:batch_size[:keep]]`` (``keep``: V stays as trained)."""
-    steps, lr, weight, *rest = text.split(":")
+    fields = text.split(":")
+    if not 3 <= len(fields) <= 5:
+        raise argparse.ArgumentTypeError(f"{text}: steps:lr:new_weight[:batch_size[:keep]]")
+    steps, lr, weight, batch, keep = (fields + ["", ""])[:5]
+    if keep not in ("", "keep"):
+        raise argparse.ArgumentTypeError(f"{text}: the fifth field is 'keep' or nothing")
     return RefineConfig(
         steps=int(steps),
         lr=float(lr),
         new_weight=int(weight),
-        batch_size=int(rest[0]) if rest and rest[0] else None,
-        fit_lyapunov=not (len(rest) > 1 and rest[1] == "keep"),
+        batch_size=int(batch) if batch else None,
+        fit_lyapunov=keep != "keep",
     )
 
 

@@ -9,11 +9,19 @@ import snds.batches as batches
 import snds.losses as losses_module
 import snds.train as train_module
 from snds.data import DataSource, Demonstration, Demonstrations, no_split, split_samples
+from snds.decrease import decrease_violations
 from snds.evaluate import accuracy
 from snds.losses import AT_TARGET, make_samples
 from snds.phase import Phase
 from snds.spaces import Euclidean
-from snds.train import TrainConfig, TrainingError, fit, training_samples
+from snds.train import (
+    TrainConfig,
+    TrainingError,
+    fit,
+    held_parameters,
+    trained_parameters,
+    training_samples,
+)
 
 from conftest import SMALL, make_policy, spiral_demos
 
@@ -649,9 +657,6 @@ def test_smooth_penalty_lowers_the_curvature_of_f_off_the_data(spiral):
 
 
 def test_a_fit_that_keeps_v_moves_only_the_nominal_field_and_stays_stable(spiral):
-    from snds.decrease import decrease_violations
-    from snds.train import held_parameters, trained_parameters
-
     policy = make_policy(spiral, dtype=torch.float32)
     config = dataclasses.replace(FAST, steps=40, fit_lyapunov=False)
     held = held_parameters(policy, config)
