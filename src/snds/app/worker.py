@@ -2,43 +2,43 @@
 server.
 
 Each job runs the library's training run (:func:`snds.run.train_run`, what ``snds train``
-runs) on the strokes' CSV in a process of its own (``python -m snds.app.worker``), so its run
-folder is exactly what ``snds train`` writes with the same settings, and a crash, a kill or a
-runaway training cannot take the server with it. Importing torch and the library takes
-seconds, so the server keeps one spare worker that has done so and waits for its job's
-options (:class:`JobOptions`, as JSON) on its standard input; a job takes the spare and a new
-spare starts behind it.
+runs) on the strokes' CSV in a process of its own, so its run folder is exactly what ``snds
+train`` writes with the same settings, and a crash, a kill or a runaway training cannot take
+the server with it.
 
-The worker reports to the server in JSON lines on its standard output, from the run's
-callbacks (:class:`Reporter`): the training steps as they happen, the moment the model is
-saved (the page draws the field then, while the stability check runs), and the end. A new
-job cancels the one running (its process is killed); a worker that dies is reported as an
-error on its job, and the next job gets a new process.
+Importing torch and the library takes seconds, so a job's process is forked from one that
+has done so once, when the server started (:mod:`multiprocessing`'s "forkserver", with
+:data:`PRELOADED` imported): a job starts in milliseconds, however soon it follows the last
+one. Where a platform cannot fork, each job's process starts afresh ("spawn").
+
+The worker reports to the server in messages on a pipe, from the run's callbacks
+(:class:`Reporter`): the training steps as they happen, the moment the model is saved (the
+page draws the field then, while the stability check runs), and the end. A new job cancels
+the one running (its process is killed); a worker that dies is reported as an error on its
+job, and the next job gets a new process.
 """
 
 from __future__ import annotations
 
 import contextlib
-import json
+import multiprocessing
+import multiprocessing.forkserver
 import os
 import resource
 import shutil
-import subprocess
 import sys
 import threading
 import time
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field, replace
+from multiprocessing.connection import Connection
 from pathlib import Path
-from typing import IO, Any
-
-import torch
+from typing import Any
 
 from snds.callbacks import Callback, EndEvent, SavedEvent, StepEvent
 from snds.data import DataSource
 from snds.errors import ConfigError, SNDSError
-from snds.optim import adam
 from snds.recipes import RECIPES
 from snds.refine_run import refine_run
 from snds.run import train_run
@@ -52,7 +52,9 @@ __all__ = [
     "Job",
     "JobOptions",
     "Jobs",
+    "PRELOADED",
     "Reporter",
+    "Worker",
     "run_job",
 ]
 
@@ -67,6 +69,9 @@ METHODS: dict[str, bool] = {"snds": True, "bc": False}
 STROKES_FILE = "strokes.csv"
 #: The strokes a refinement adds, in its job's model folder (:func:`snds.refine_run.refine_run`).
 ADDED_FILE = "added.csv"
+#: Modules the process that workers fork from imports once: the library's run, and torch's
+#: compiler guard, which the first optimiser of a process would otherwise import (about 1 s).
+PRELOADED = ("snds.app.worker", "torch._dynamo")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -188,31 +193,71 @@ def run_job(options: JobOptions, folder: Path, send: Callable[[dict], None]) -> 
         report({"event": "error", "message": f"{type(error).__name__}: {error}"})
 
 
-def main() -> None:
-    """``python -m snds.app.worker``: with the library imported, runs the one job whose
-    options (a JSON object: :class:`JobOptions` and ``folder``) arrive on standard input;
-    events go to standard output."""
-    # Anything the library prints must not mix with the events: stdout becomes stderr.
-    events = os.fdopen(os.dup(sys.stdout.fileno()), "w")
+def _child(request: dict, events: Connection) -> None:
+    """A worker process: runs the job of ``request`` (:class:`JobOptions` and ``folder``),
+    sending its events on ``events``."""
+    # Anything the library prints must not reach the server's standard output.
     os.dup2(sys.stderr.fileno(), sys.stdout.fileno())
-    # While no job has come yet: torch imports its compiler guard (about a second) at the
-    # first optimiser a process builds, which the job would otherwise wait for.
-    adam([torch.zeros(1, requires_grad=True)], 1e-3)
-    line = sys.stdin.readline()
-    if not line:
-        return
-
-    def send(message: dict) -> None:
-        events.write(json.dumps(message) + "\n")
-        events.flush()
-
-    request = json.loads(line)
-    folder = Path(request.pop("folder"))
-    run_job(JobOptions(**request), folder, send)
-    events.close()
+    options = dict(request)
+    folder = Path(options.pop("folder"))
+    try:
+        run_job(JobOptions(**options), folder, events.send)
+    finally:
+        events.close()
 
 
 # --- In the server -----------------------------------------------------------------------------
+
+
+def _context() -> multiprocessing.context.BaseContext:
+    method = "forkserver" if "forkserver" in multiprocessing.get_all_start_methods() else "spawn"
+    return multiprocessing.get_context(method)
+
+
+class Worker:
+    """The process of one job, started at once with its request.
+
+    Arguments:
+        request: The job's options (:meth:`JobOptions.to_dict`) and ``folder``.
+    """
+
+    def __init__(self, request: dict) -> None:
+        context = _context()
+        self.events, sender = context.Pipe(duplex=False)
+        self.process = context.Process(
+            target=_child, args=(request, sender), name="snds-worker", daemon=True
+        )
+        self.process.start()
+        sender.close()  # the worker holds the only sending end: its exit ends the stream
+
+    @property
+    def pid(self) -> int | None:
+        """The process id."""
+        return self.process.pid
+
+    def poll(self) -> int | None:
+        """The exit code (minus the signal's number if killed by one), or None while it runs."""
+        return self.process.exitcode
+
+    def kill(self) -> None:
+        """Kills the process (SIGKILL)."""
+        if self.process.exitcode is None:
+            self.process.kill()
+
+    def wait(self, timeout: float | None = None) -> int | None:
+        """Waits for the process to end (at most ``timeout`` seconds); its exit code."""
+        self.process.join(timeout)
+        return self.process.exitcode
+
+    def messages(self) -> Iterator[dict]:
+        """The worker's events, until its process has ended."""
+        with contextlib.suppress(EOFError, OSError):
+            while True:
+                yield self.events.recv()
+
+    def close(self) -> None:
+        """Closes the event pipe (after the process has ended)."""
+        self.events.close()
 
 
 @dataclass
@@ -311,22 +356,14 @@ class Jobs:
         self.jobs: dict[str, Job] = {}
         self.lock = threading.Lock()
         self.starting = threading.Lock()
-        self.spare: subprocess.Popen | None = None
-        self.closed = False
-
-    def _worker(self) -> subprocess.Popen:
-        return subprocess.Popen(
-            [sys.executable, "-c", "from snds.app.worker import main; main()"],
-            stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE,
-            text=True,
-        )
 
     def warm_up(self) -> None:
-        """Starts the spare worker (it imports torch and the library while nobody waits)."""
-        with self.lock:
-            if self.spare is None and not self.closed:
-                self.spare = self._worker()
+        """Starts the process that workers fork from, which imports :data:`PRELOADED` while
+        nobody waits (nothing to do where workers start afresh)."""
+        context = _context()
+        if isinstance(context, multiprocessing.context.ForkServerContext):
+            context.set_forkserver_preload(list(PRELOADED))
+            multiprocessing.forkserver.ensure_running()
 
     def get(self, job_id: str) -> Job | None:
         """The job of that id, if the server still keeps it."""
@@ -355,30 +392,18 @@ class Jobs:
         except BaseException:
             shutil.rmtree(job.folder, ignore_errors=True)
             raise
+        request = options.to_dict() | {"folder": str(job.model)}
         # One start at a time: two requests at once must not leave two jobs running.
         with self.starting:
             for running in self.running():
                 self.cancel(running)
-            with self.lock:
-                spare, self.spare = self.spare, None
-            worker = spare if spare is not None and spare.poll() is None else self._worker()
-            job.process = worker
             job.started = time.perf_counter()
+            job.process = Worker(request)
             with self.lock:
                 self.jobs[job_id] = job
-        request = options.to_dict() | {"folder": str(job.model)}
-        try:
-            worker.stdin.write(json.dumps(request) + "\n")
-            worker.stdin.close()
-        except OSError:
-            pass  # the worker died: its watcher reports it
         threading.Thread(
-            target=self._watch,
-            args=(job, worker.stdout),
-            name=f"snds-job-{job_id[:8]}",
-            daemon=True,
+            target=self._watch, args=(job,), name=f"snds-job-{job_id[:8]}", daemon=True
         ).start()
-        self.warm_up()
         self._prune()
         return job
 
@@ -391,23 +416,12 @@ class Jobs:
             job.process.kill()
 
     def close(self) -> None:
-        """Stops every worker and the spare, and waits for them (at shutdown)."""
-        with self.lock:
-            self.closed = True
-            spare, self.spare = self.spare, None
+        """Stops every worker and waits for them (at shutdown)."""
         for job in self.running():
             self.cancel(job)
-        workers = [job.process for job in list(self.jobs.values()) if job.process is not None]
-        if spare is not None:
-            spare.kill()
-            workers.append(spare)
-        for worker in workers:
-            with contextlib.suppress(subprocess.TimeoutExpired):
-                worker.wait(timeout=5)
-            for stream in (worker.stdin, worker.stdout):
-                if stream is not None:
-                    with contextlib.suppress(OSError):
-                        stream.close()
+        for job in list(self.jobs.values()):
+            if job.process is not None:
+                job.process.wait(timeout=5)
 
     def _update(self, job: Job, **changes: Any) -> None:
         with job.lock:
@@ -419,19 +433,14 @@ class Jobs:
                 # A stream that polls may miss a state that lasted a moment; it replays these.
                 job.milestones.append(job.status())
 
-    def _watch(self, job: Job, lines: IO[str]) -> None:
+    def _watch(self, job: Job) -> None:
         """Applies a worker's events to its job until the worker is gone."""
         ended = False
-        with contextlib.suppress(OSError, ValueError):
-            for line in lines:
-                if job.cancelled or ended:
-                    continue
-                try:
-                    message = json.loads(line)
-                except json.JSONDecodeError:
-                    continue
+        for message in job.process.messages():
+            if not (job.cancelled or ended):
                 ended = self._apply(job, message)
         code = job.process.wait()
+        job.process.close()
         if job.cancelled:
             self._finish(job, "cancelled")
         elif not ended:
@@ -487,7 +496,3 @@ class Jobs:
             for job in finished[: max(0, len(finished) - self.kept)]:
                 del self.jobs[job.id]
                 shutil.rmtree(job.folder, ignore_errors=True)
-
-
-if __name__ == "__main__":
-    main()
