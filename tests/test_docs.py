@@ -1,5 +1,6 @@
-"""The README stays short and true to the parser, no link in the docs points nowhere, and the
-benchmarks' README stays a short set of current tables whose results files it cites."""
+"""The README and the command-line manual stay short and true to the parser, no link in the
+docs points nowhere, and the benchmarks' README stays a short set of current tables whose
+results files it cites."""
 
 from __future__ import annotations
 
@@ -99,6 +100,24 @@ def test_readme_cli_reference_matches_the_parser():
         accepted = set(LONG_OPTION.findall(help_text))
         missing = sorted(options - accepted)
         assert not missing, f"README names {missing} for `snds {sub or ''}`, the parser lacks them"
+
+
+def test_cli_manual_shows_every_subcommands_current_usage(monkeypatch):
+    # GIVEN the usage blocks of docs/cli.md, and the parser's usage at the width they use
+    monkeypatch.setenv("COLUMNS", "80")
+    parser = build_parser()
+    subparsers = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    blocks = {}
+    for block in _code_blocks((ROOT / "docs" / "cli.md").read_text()):
+        if block.startswith("usage: snds "):
+            word = block.split()[2]
+            blocks[None if word.startswith("[") else word] = block.strip()
+    # THEN the manual has one for the program and each subcommand
+    assert set(blocks) == {None, *subparsers.choices}
+    # AND each is what `snds [SUB] --help` prints, so the manual cannot fall behind the parser
+    for sub, block in blocks.items():
+        usage = (parser if sub is None else subparsers.choices[sub]).format_usage().strip()
+        assert block == usage, f"docs/cli.md's usage of `snds {sub or ''}` is out of date"
 
 
 def _slug(heading: str) -> str:
