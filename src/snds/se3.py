@@ -59,7 +59,8 @@ class PoseConfig(PolicyConfig):
     """Architecture of a pose policy: a :class:`~snds.policy.PolicyConfig` on the 6-D state,
     plus the target pose and the two length scales; saved beside the weights.
 
-    ``warp_layers`` None means 0 here (see docs/design.md).
+    ``warp_layers`` None means :data:`~snds.policy.DEFAULT_WARP_LAYERS` here (the chart is
+    6-D, see docs/design.md).
 
     Attributes:
         position_scale: :math:`L_p` in user length units (metres for arm data).

@@ -115,9 +115,9 @@ def register(commands: argparse._SubParsersAction) -> None:
         type=int,
         default=DEFAULT.policy.warp_layers,
         help="coupling layers of a learned warp inside V, for demonstrations that wind back "
-        f"and forth (default {DEFAULT_WARP_LAYERS} for positions of dimension >= 2, 0 in 1-D "
-        "and for SE(3) poses; 0: off, V convex, ~3x faster training, see "
-        "benchmarks/README.md)",
+        f"and forth (default {DEFAULT_WARP_LAYERS} for states of dimension >= 2, poses "
+        "included, 0 in 1-D; 0: off, V convex, about 1.5x faster training, see "
+        "docs/design.md)",
     )
     parser.add_argument(
         "--warp-weight",
