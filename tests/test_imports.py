@@ -11,6 +11,8 @@ a public name.
 from __future__ import annotations
 
 import ast
+import subprocess
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -21,7 +23,10 @@ PACKAGE = SRC / "snds"
 OPTIONAL = ("snds.sim", "snds.export", "snds.app")
 
 #: Function-level imports that are the design: (importing module, imported module) and why.
-DELIBERATE: dict[tuple[str, str], str] = {}
+DELIBERATE: dict[tuple[str, str], str] = {
+    ("snds.run", "snds.plotting"): "matplotlib takes about 0.35 s to import: `import snds` "
+    "and a run without plots (plots=False) do not pay it",
+}
 
 
 @dataclass(frozen=True)
@@ -169,6 +174,22 @@ def test_no_cycle_when_function_level_imports_count_too() -> None:
 def test_our_modules_are_imported_at_the_top_except_the_extras() -> None:
     lazy = sorted({str(imp) for imp in IMPORTS if not imp.top_level and not _allowed(imp)})
     assert not lazy, "function-level imports of snds modules:\n" + "\n".join(lazy)
+
+
+def test_import_snds_leaves_the_extras_and_matplotlib_out() -> None:
+    # GIVEN a fresh interpreter that imports the package and its run API
+    code = (
+        "import sys, snds, snds.run; "
+        "print(','.join(sorted(m for m in ('matplotlib', *OPTIONAL) if m in sys.modules)))"
+    )
+    found = subprocess.run(
+        [sys.executable, "-c", f"OPTIONAL = {OPTIONAL!r}; {code}"],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout.strip()
+    # THEN neither the plots' matplotlib nor an extra was imported
+    assert found == ""
 
 
 #: Underscore names still imported across modules, as (importing module, name); none left.

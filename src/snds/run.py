@@ -28,7 +28,6 @@ from snds.data import DataSource, Demonstrations, Split, no_split, split_demos, 
 from snds.errors import ConfigError
 from snds.evaluate import Evaluation, evaluate
 from snds.methods import make_policy
-from snds.plotting import plot_all
 from snds.policy import Policy
 from snds.recipes import RECIPES, Recipe
 from snds.runs import RunFolder
@@ -227,6 +226,8 @@ def complete_run(
     notify(callbacks, "on_evaluated", EvaluatedEvent(folder.path, written))
     drawn: list[Path] = []
     if plots:
+        from snds.plotting import plot_all  # matplotlib: only a run that plots imports it
+
         shown = copy.deepcopy(policy).to(device="cpu", dtype=torch.float64).eval()
         drawn = plot_all(shown, demos, folder.path, history=result.history)
     folder.finish()
