@@ -279,6 +279,37 @@ def _long_job(client: TestClient, helpers) -> str:
     return job
 
 
+def test_a_training_job_previews_its_field_before_the_model_is_saved(client, helpers) -> None:
+    # GIVEN a long training that asks for previews on a 12 x 8 grid
+    grid = {"bounds": [-60.0, 10.0, -30.0, 30.0], "size": [12, 8]}
+    body = {"strokes": helpers.strokes(), "settings": {"steps": 100_000}, "preview": grid}
+    job = client.post("/api/train", json=body).json()["id"]
+    # THEN there is none at first (the first comes after a second of training)
+    early = client.get(f"/api/jobs/{job}/preview")
+    assert early.status_code == 409 and "has no preview" in early.json()["error"]
+    # AND previews then come while it trains, each of a later step
+    steps = []
+    deadline = time.monotonic() + 90
+    while len(steps) < 2:
+        assert time.monotonic() < deadline, "no previews came"
+        status = client.get(f"/api/jobs/{job}").json()
+        if status["previews"] > len(steps):
+            steps.append(client.get(f"/api/jobs/{job}/preview").json())
+        time.sleep(0.05)
+    assert status["state"] == "training" and "policy" not in _job(client, job).extra
+    assert 0 < steps[0]["step"] < steps[1]["step"] < 100_000
+    # each the field of the policy being trained on the asked grid: finite velocities and a V
+    # that is positive away from the target
+    latest = steps[1]
+    assert np.allclose(latest["x"], np.linspace(-60, 10, 12))
+    assert np.allclose(latest["y"], np.linspace(-30, 30, 8))
+    velocity, value = np.array(latest["velocity"]), np.array(latest["V"])
+    assert velocity.shape == (8, 12, 2) and np.isfinite(velocity).all()
+    assert value.shape == (8, 12) and (value > 0).all()
+    client.delete(f"/api/jobs/{job}")
+    helpers.wait_for(client, job, {"cancelled"})
+
+
 def test_a_new_request_cancels_the_running_job_and_the_server_stays_responsive(
     client, trained, helpers
 ) -> None:
@@ -584,6 +615,20 @@ BAD_INPUT = [
         {"json": {"bounds": [0, 1, 0, 1]}},
         404,
         "no job 'nope' on this server",
+    ),
+    (
+        "preview that is not an object",
+        TRAIN,
+        {"json": {"strokes": [_stroke(4)], "preview": [0, 1, 0, 1]}},
+        400,
+        "'preview' must be {bounds: [x0, x1, y0, y1], size: [nx, ny]}",
+    ),
+    (
+        "preview with empty bounds",
+        TRAIN,
+        {"json": {"strokes": [_stroke(4)], "preview": {"bounds": [1, 0, 0, 1]}}},
+        422,
+        "bounds: expected x0 < x1 and y0 < y1",
     ),
     (
         "field without bounds",

@@ -299,3 +299,29 @@ def test_a_stroke_added_after_training_refines_and_undo_reverts(page, shots: Pat
     assert page.evaluate("sndsApp.jobs.snds.id") == before
     assert page.evaluate("!!sndsApp.jobs.snds.layer && sndsApp.refining === null")
     assert page.text_content("#status").startswith("Undone")
+
+
+def test_the_field_is_previewed_while_training(page, shots: Path) -> None:
+    # GIVEN the strokes on the board and a training far longer than a second
+    steps = page.evaluate("sndsApp.settings.steps")
+    page.evaluate("sndsApp.settings.steps = 100000")
+    try:
+        page.click("#train")
+        # THEN the field of the policy being trained is drawn before its model is saved
+        page.wait_for_function(
+            "sndsApp.jobs.snds && !!sndsApp.jobs.snds.previewLayer", timeout=120_000
+        )
+        assert page.evaluate("sndsApp.jobs.snds.status.state") == "training"
+        assert page.evaluate("sndsApp.jobs.snds.preview.step") > 0
+        assert page.evaluate("sndsApp.jobs.snds.preview.V !== null")
+        # and it is shown, not rolled out: Run waits for the saved model
+        assert page.evaluate("!sndsApp.jobs.snds.layer && !sndsApp.jobs.snds.result")
+        assert page.evaluate("document.getElementById('mode-run').disabled")
+        page.screenshot(path=str(shots / "app_preview.png"))
+    finally:
+        # The long job is replaced by one of the module's usual length.
+        page.evaluate(f"sndsApp.settings.steps = {steps}")
+        page.click("#train")
+        page.wait_for_function(
+            "sndsApp.jobs.snds && sndsApp.jobs.snds.status.state === 'done'", timeout=120_000
+        )

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from snds.app.fields import grid_field
 from snds.app.strokes import RequestError, demonstrations_from_csv
 from snds.app.worker import STROKES_FILE, Job
 from snds.arrival import ARRIVAL_TOLERANCE
@@ -116,18 +117,11 @@ def start_states(job: Job, points: np.ndarray) -> np.ndarray:
     return points if rule is None else rule.start_states(points)
 
 
-@torch.no_grad()
 def field_on_grid(job: Job, xs: np.ndarray, ys: np.ndarray) -> dict:
-    """Velocities (ny, nx, 2) and V (ny, nx; None without one) of a job's policy on a grid:
-    for a model with a phase, the velocity a new start at each point begins with."""
-    policy = job.extra["policy"]
-    points = start_states(job, np.stack(np.meshgrid(xs, ys), axis=-1).reshape(-1, 2))
-    velocity = policy.predict(points)[:, :2].reshape(len(ys), len(xs), 2)
-    value = None
-    if policy.stable:
-        lyapunov, _ = policy_guard(policy)
-        value = lyapunov(torch.from_numpy(points)).numpy().reshape(len(ys), len(xs))
-    return {"x": xs, "y": ys, "velocity": velocity, "V": value}
+    """Velocities (ny, nx, 2) and V (ny, nx; None without one) of a job's policy on a grid
+    (:func:`snds.app.fields.grid_field`): for a model with a phase, the velocity a new start
+    at each point begins with."""
+    return grid_field(job.extra["policy"], xs, ys, lambda points: start_states(job, points))
 
 
 @torch.no_grad()

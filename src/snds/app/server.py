@@ -5,9 +5,10 @@ Routes (all JSON unless said; errors are ``{"error": "one line"}`` with a 4xx st
 * ``GET /``: the page; ``GET /static/...``: its script and style (files of this package).
 * ``GET /api/health``, ``GET /api/limits``.
 * ``POST /api/train``: ``{"strokes": [[[x, y, t], ...], ...], "target": [x, y]?,
-  "method": "snds" | "bc"?, "settings": {"steps", "seed", "rollouts", "samples"}?}``;
-  starts ``snds train`` on them in a worker process (cancelling the job running) and answers
-  202 with the job's status.
+  "method": "snds" | "bc"?, "settings": {"steps", "seed", "rollouts", "samples"}?,
+  "preview": {"bounds", "size"}?}``; starts ``snds train`` on them in a worker process
+  (cancelling the job running) and answers 202 with the job's status. With ``preview``, the
+  worker computes the field of the policy being trained on that grid about every second.
 * ``POST /api/jobs/{id}/refine``: the body of ``/api/train`` with the job's strokes and
   target followed by new strokes; starts ``snds train --init`` on the job's model with the new
   strokes (:func:`snds.refine_run.refine_run`: about a second) as a new job, answered as
@@ -18,7 +19,9 @@ Routes (all JSON unless said; errors are ``{"error": "one line"}`` with a 4xx st
   metrics.json: the stability check) once done. ``GET /api/jobs/{id}/events``: the same as a
   stream of server-sent events, one per change, until the job ends. ``DELETE``: cancels it.
 * ``POST /api/jobs/{id}/field``: ``{"bounds": [x0, x1, y0, y1], "size": [nx, ny]}``: the
-  policy's velocities and V on that grid.
+  policy's velocities and V on that grid. ``GET /api/jobs/{id}/preview``: the latest field
+  of the policy while it trains (``previews`` in the status counts them), with its ``step``;
+  409 before the first.
 * ``POST /api/jobs/{id}/rollout``: ``{"start": [x, y], "pushes": [{"at": s, "by": [dx,
   dy]}]?, "duration": s?, "dt": s?}``: a rollout (:func:`snds.rollout.rollout`) with the
   guarded step (:class:`snds.steppers.GuardedEuler`; plain Euler for BC), stopping at the
@@ -160,7 +163,15 @@ def create_app(
         if method not in METHODS:
             raise RequestError(422, f"unknown method {method!r} (known: {', '.join(METHODS)})")
         settings = parse_settings(body.get("settings"), limits)
-        options = JobOptions(method=method, **settings)
+        preview = None
+        if body.get("preview") is not None:
+            if not isinstance(body["preview"], dict):
+                raise RequestError(
+                    400, "'preview' must be {bounds: [x0, x1, y0, y1], size: [nx, ny]}"
+                )
+            xs, ys = parse_grid(body["preview"], limits)
+            preview = {"x": xs.tolist(), "y": ys.tolist()}
+        options = JobOptions(method=method, **settings, preview=preview)
 
         def write_inputs(model: Path) -> None:
             write_csv(strokes, model / STROKES_FILE)
@@ -238,6 +249,15 @@ def create_app(
         job = job_of(request, saved=True)
         xs, ys = parse_grid(await read_json(request, limits), limits)
         return json_response(await run_in_threadpool(field_on_grid, job, xs, ys))
+
+    async def preview(request: Request) -> Response:
+        job = job_of(request)
+        latest = job.extra.get("preview")
+        if latest is None:
+            raise RequestError(
+                409, f"job {job.id} has no preview of its field ({job.state}, {job.previews} sent)"
+            )
+        return json_response(latest)
 
     async def rollout(request: Request) -> Response:
         job = job_of(request, saved=True)
@@ -349,6 +369,7 @@ def create_app(
         Route(job_path, cancel, methods=["DELETE"]),
         Route(f"{job_path}/events", events),
         Route(f"{job_path}/field", field, methods=["POST"]),
+        Route(f"{job_path}/preview", preview),
         Route(f"{job_path}/rollout", rollout, methods=["POST"]),
         Route(f"{job_path}/model.zip", model_zip),
         Route(f"{job_path}/policy.onnx", onnx),

@@ -36,9 +36,14 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
+from snds.app.fields import grid_field
 from snds.callbacks import Callback, EndEvent, SavedEvent, StepEvent
 from snds.data import DataSource
 from snds.errors import ConfigError, SNDSError
+from snds.phase import start_rule
+from snds.policy import float64_copy
 from snds.recipes import RECIPES
 from snds.refine_run import refine_run
 from snds.run import train_run
@@ -52,7 +57,9 @@ __all__ = [
     "Job",
     "JobOptions",
     "Jobs",
+    "PREVIEW_EVERY",
     "PRELOADED",
+    "Preview",
     "Reporter",
     "Worker",
     "run_job",
@@ -62,6 +69,8 @@ __all__ = [
 FINAL_STATES = frozenset({"done", "error", "cancelled"})
 #: Seconds between two progress reports of a worker (and the last step always).
 REPORT_EVERY = 0.1
+#: Seconds between two previews of the field while a job trains (:class:`Preview`).
+PREVIEW_EVERY = 1.0
 #: The methods the page trains, with whether the policy is stable (``snds train
 #: --unconstrained`` for BC).
 METHODS: dict[str, bool] = {"snds": True, "bc": False}
@@ -88,6 +97,9 @@ class JobOptions:
         init: A model folder to refine with the strokes of ``added.csv`` (:data:`ADDED_FILE`,
             :func:`snds.refine_run.refine_run`) instead of training on ``strokes.csv``; None:
             train.
+        preview: The page's grid, ``{"x": [...], "y": [...]}``, on which the worker sends the
+            field of the policy being trained every :data:`PREVIEW_EVERY` seconds
+            (:class:`Preview`); None: no previews.
     """
 
     method: str = "snds"
@@ -96,6 +108,7 @@ class JobOptions:
     rollouts: int = ROLLOUTS
     samples: int = SAMPLES
     init: str | None = None
+    preview: dict | None = None
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -144,6 +157,49 @@ class Reporter(Callback):
         self.send({"event": "saved"})
 
 
+class Preview(Callback):
+    """The run's callback that shows the field while training: every ``every`` seconds of
+    training it sends the live policy's field on the page's grid
+    (:func:`snds.app.fields.grid_field`) as a ``preview`` message, with the step it shows.
+
+    Arguments:
+        send: Writes one message.
+        xs: The grid's x values (nx,).
+        ys: The grid's y values (ny,).
+        starts: The state a start at each grid point takes (None: the point itself).
+        every: Seconds between two previews; the first comes after as many.
+    """
+
+    def __init__(
+        self,
+        send: Callable[[dict], None],
+        xs: np.ndarray,
+        ys: np.ndarray,
+        starts: Callable[[np.ndarray], np.ndarray] | None,
+        every: float = PREVIEW_EVERY,
+    ) -> None:
+        self.send, self.xs, self.ys, self.starts, self.every = send, xs, ys, starts, every
+        self.last = time.perf_counter()
+
+    def on_step(self, event: StepEvent) -> None:
+        now = time.perf_counter()
+        if now - self.last < self.every or event.step + 1 == event.total:
+            return  # the saved model's field follows the last step
+        field = grid_field(float64_copy(event.policy), self.xs, self.ys, self.starts)
+        self.send({"event": "preview", "step": event.step + 1, "field": field})
+        self.last = time.perf_counter()
+
+
+def _preview(options: JobOptions, source: DataSource, send: Callable[[dict], None]) -> list:
+    """The :class:`Preview` callback of a training job that asked for one (none otherwise)."""
+    if options.preview is None or options.init is not None:
+        return []
+    demos = source.load()
+    rule = start_rule(demos) if demos.phase_dim else None
+    xs, ys = (np.asarray(options.preview[k], dtype=np.float64) for k in ("x", "y"))
+    return [Preview(send, xs, ys, None if rule is None else rule.start_states)]
+
+
 def _cpu_seconds() -> float:
     usage = resource.getrusage(resource.RUSAGE_SELF)
     return usage.ru_utime + usage.ru_stime
@@ -184,7 +240,7 @@ def run_job(options: JobOptions, folder: Path, send: Callable[[dict], None]) -> 
                 recipe=recipe,
                 seed=options.seed,
                 check=check,
-                callbacks=[Reporter(report)],
+                callbacks=[Reporter(report), *_preview(options, source, report)],
             )
         report({"event": "done"})
     except SNDSError as error:
@@ -280,6 +336,8 @@ class Job:
         finished_after: Seconds from the start until the job ended.
         worker_cpu_seconds: CPU seconds the worker used.
         saved_cpu_seconds: CPU seconds the worker had used when the model was saved.
+        previews: Previews of the field received while training (the latest is in
+            ``extra["preview"]``).
         version: Bumped at every change (the event stream sends each).
         milestones: The status at each change of state, in order.
     """
@@ -298,6 +356,7 @@ class Job:
     finished_after: float | None = None
     worker_cpu_seconds: float = 0.0
     saved_cpu_seconds: float | None = None
+    previews: int = 0
     version: int = 0
     process: Any = field(default=None, repr=False)
     cancelled: bool = False
@@ -334,6 +393,7 @@ class Job:
             "saved_after": self.saved_after,
             "worker_cpu_seconds": self.worker_cpu_seconds,
             "saved_cpu_seconds": self.saved_cpu_seconds,
+            "previews": self.previews,
         }
 
 
@@ -463,6 +523,10 @@ class Jobs:
                 loss=message.get("loss"),
                 worker_cpu_seconds=cpu,
             )
+        elif event == "preview":
+            if job.state == "training":
+                job.extra["preview"] = {**message["field"], "step": int(message["step"])}
+                self._update(job, previews=job.previews + 1, worker_cpu_seconds=cpu)
         elif event == "saved":
             saved_after = time.perf_counter() - job.started
             try:

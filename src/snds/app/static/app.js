@@ -6,6 +6,8 @@
 (() => {
   const DEFAULT_VIEW = { x0: -100, x1: 100, y0: -75, y1: 75 };
   const FIELD_SIZE = [72, 54];
+  // The grid of the field previewed while a job trains (computed in the training process).
+  const PREVIEW_SIZE = [48, 36];
   const SETTINGS = ["steps", "seed", "rollouts", "samples"];
   const canvas = document.getElementById("canvas");
   const ctx = canvas.getContext("2d");
@@ -173,7 +175,9 @@
     updateButtons();
     let status;
     try {
-      status = await api("/api/train", { ...strokesBody(), method, settings: app.settings });
+      const v = app.view;
+      const preview = { bounds: [v.x0, v.x1, v.y0, v.y1], size: PREVIEW_SIZE };
+      status = await api("/api/train", { ...strokesBody(), method, settings: app.settings, preview });
     } catch (error) {
       say(error.message, true);
       progress(0, "not trained");
@@ -203,6 +207,7 @@
         const loss = status.loss == null ? "" : `, loss ${status.loss.toExponential(2)}`;
         const doing = job.refines ? `${job.method.toUpperCase()}: refining with the new stroke,` : `${name}:`;
         jobProgress(job, status.step / total, `${doing} step ${status.step} of ${status.total || "?"}${loss}`);
+        if ((status.previews || 0) > (job.previews || 0) && !job.result) loadPreview(job, status.previews);
       } else if (status.state === "checking") {
         jobProgress(job, 1, `${name}: trained; checking stability...`);
       }
@@ -244,6 +249,22 @@
       progress(0, "not trained");
       updateButtons();
     };
+  }
+
+  // The field of the policy while it trains: drawn until the saved model's field replaces it
+  // (it does not enable Run: only a saved model is rolled out).
+  async function loadPreview(job, count) {
+    job.previews = count;
+    let preview;
+    try {
+      preview = await api(`/api/jobs/${job.id}/preview`, undefined, { method: "GET" });
+    } catch (error) {
+      return; // the job moved on (saved, cancelled): its own field or state follows
+    }
+    if (job.result || app.jobs[job.method] !== job) return;
+    job.preview = preview;
+    job.previewLayer = renderLayer(job, preview);
+    draw();
   }
 
   async function loadField(job) {
@@ -300,17 +321,17 @@
     };
   }
 
-  function renderLayer(job) {
+  function renderLayer(job, field = job.field) {
     const { w, h } = size();
     const ratio = window.devicePixelRatio || 1;
     const layer = document.createElement("canvas");
     layer.width = Math.round(w * ratio);
     layer.height = Math.round(h * ratio);
     const g = layer.getContext("2d");
-    const sample = sampler(job.field);
-    if (job.field.V) drawContours(g, job.field, layer.width, layer.height);
+    const sample = sampler(field);
+    if (field.V) drawContours(g, field, layer.width, layer.height);
     g.scale(ratio, ratio);
-    drawStreamlines(g, job.field, sample, job.method === "bc" ? "rgba(150, 40, 40, 0.5)" : "rgba(30, 50, 80, 0.5)");
+    drawStreamlines(g, field, sample, job.method === "bc" ? "rgba(150, 40, 40, 0.5)" : "rgba(30, 50, 80, 0.5)");
     return layer;
   }
 
@@ -514,7 +535,8 @@
     ctx.setTransform(ratio, 0, 0, ratio, 0, 0);
     ctx.clearRect(0, 0, w, h);
     const job = currentJob();
-    if (job && job.layer) ctx.drawImage(job.layer, 0, 0, w, h);
+    const layer = job && (job.layer || job.previewLayer);
+    if (layer) ctx.drawImage(layer, 0, 0, w, h);
     for (const stroke of app.strokes) {
       const points = ramped(stroke);
       path(points, { color: "#1d2733", width: 3 });
@@ -944,7 +966,10 @@
   }
 
   window.addEventListener("resize", () => {
-    for (const job of Object.values(app.jobs)) if (job && job.field) job.layer = renderLayer(job);
+    for (const job of Object.values(app.jobs)) {
+      if (job && job.field) job.layer = renderLayer(job);
+      else if (job && job.preview) job.previewLayer = renderLayer(job, job.preview);
+    }
     draw();
   });
 
