@@ -317,6 +317,9 @@ def test_the_field_is_previewed_while_training(page, shots: Path) -> None:
         # and it is shown, not rolled out: Run waits for the saved model
         assert page.evaluate("!sndsApp.jobs.snds.layer && !sndsApp.jobs.snds.result")
         assert page.evaluate("document.getElementById('mode-run').disabled")
+        # and the check's numbers of the policy before are gone until the new ones come
+        assert page.text_content("#snds-converged") == "–"
+        assert page.text_content("#warnings") == ""
         page.screenshot(path=str(shots / "app_preview.png"))
     finally:
         # The long job is replaced by one of the module's usual length.

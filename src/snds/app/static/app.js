@@ -169,6 +169,7 @@
     }
     app.jobs[method] = null;
     app.drawn[method] = false;
+    showMetrics(); // the check's numbers of the policy before go with it
     document.body.dataset.state = "training";
     app.timings[method] = { clicked: performance.now() };
     progress(0, `${method.toUpperCase()}: starting`);
