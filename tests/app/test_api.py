@@ -11,6 +11,7 @@ import signal
 import subprocess
 import time
 import zipfile
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -22,12 +23,17 @@ pytest.importorskip("starlette", reason="snds app needs the app extra (pip insta
 from starlette.testclient import TestClient  # noqa: E402
 
 from snds.app import LIMITS, create_app  # noqa: E402
-from snds.app.strokes import parse_strokes  # noqa: E402
+from snds.app.strokes import parse_strokes, write_csv  # noqa: E402
+from snds.app.worker import Preview  # noqa: E402
 from snds.cli import main  # noqa: E402
+from snds.data import DataSource  # noqa: E402
 from snds.models import load_model  # noqa: E402
-from snds.phase import start_states  # noqa: E402
+from snds.phase import start_rule, start_states  # noqa: E402
 from snds.policy import float64_copy  # noqa: E402
+from snds.recipes import RECIPES  # noqa: E402
 from snds.rollout import policy_guard  # noqa: E402
+from snds.run import train_run  # noqa: E402
+from snds.stability import CheckConfig  # noqa: E402
 
 
 def _job(client: TestClient, job: str):
@@ -308,6 +314,30 @@ def test_a_training_job_previews_its_field_before_the_model_is_saved(client, hel
     assert value.shape == (8, 12) and (value > 0).all()
     client.delete(f"/api/jobs/{job}")
     helpers.wait_for(client, job, {"cancelled"})
+
+
+def test_previews_leave_the_trained_model_unchanged(tmp_path, helpers) -> None:
+    # GIVEN the same short fit of the page's strokes, once with a preview at every step
+    write_csv(parse_strokes({"strokes": helpers.strokes()}), tmp_path / "strokes.csv")
+    recipe = RECIPES["default"]
+    recipe = replace(recipe, train=replace(recipe.train, steps=12))
+    source = DataSource(file=tmp_path / "strokes.csv", phase=recipe.phase)
+    rule = start_rule(source.load())
+    sent: list[dict] = []
+    preview = Preview(
+        sent.append, np.linspace(-60, 10, 5), np.linspace(-30, 30, 4), rule.start_states, every=0.0
+    )
+    check = CheckConfig(rollouts=5, samples=50)
+    runs = [
+        train_run(source, tmp_path / name, recipe=recipe, check=check, callbacks=callbacks)
+        for name, callbacks in (("with", [preview]), ("without", []))
+    ]
+    # THEN every step but the last (whose saved field follows) sent one
+    assert [message["step"] for message in sent] == list(range(1, 12))
+    # AND the weights are the same to the bit: a preview reads the policy, never changes it
+    trained = [run.model.state_dict() for run in runs]
+    assert trained[0].keys() == trained[1].keys()
+    assert all(torch.equal(trained[0][key], trained[1][key]) for key in trained[0])
 
 
 def test_a_new_request_cancels_the_running_job_and_the_server_stays_responsive(
