@@ -176,6 +176,8 @@ class Fit:
         checkpoint: The file it resumes from and writes (None: none).
         identity: What a checkpoint must match (:func:`snds.checkpoint.fit_identity`).
         label: Its name in an error of a loop of several fits ("" for one).
+        parameters: The tensors its first optimiser moves (:func:`trained_parameters`): what
+            gradients are clipped over and every restart's Adam is built on.
     """
 
     index: int
@@ -191,8 +193,9 @@ class Fit:
     parameters: list[torch.Tensor] = field(init=False)
 
     def __post_init__(self) -> None:
-        # The same tensors for the whole fit: a restart reloads the state dict in place.
-        self.parameters = trained_parameters(self.policy, self.config)
+        # The tensors its optimiser moves (trained_parameters), the same for the whole fit: a
+        # restart reloads the state dict in place and builds its new Adam over them.
+        self.parameters = [p for group in self.optimizer.param_groups for p in group["params"]]
 
 
 def held_parameters(policy: Policy, config: TrainConfig) -> list[torch.Tensor]:

@@ -192,7 +192,7 @@ class Preview(Callback):
 
 def _preview(options: JobOptions, source: DataSource, send: Callable[[dict], None]) -> list:
     """The :class:`Preview` callback of a training job that asked for one (none otherwise)."""
-    if options.preview is None or options.init is not None:
+    if options.preview is None:
         return []
     demos = source.load()
     rule = start_rule(demos) if demos.phase_dim else None
