@@ -74,7 +74,7 @@ class PolicyConfig:
     lyapunov_hidden: tuple[int, ...] = (32, 32)
     lyapunov_activation: str = "smooth_leaky"
     quadratic: float = 0.05
-    decay_rate: float = 0.5
+    decay_rate: float = 0.75
     decay_far: float = 2.0
     decay_near: float = 2.0
     near_radius: float = 0.2
